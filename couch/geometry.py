@@ -1,0 +1,94 @@
+"""Rigid transforms: building, inverting, applying, fitting and averaging 4x4 poses.
+
+Transforms are ``(..., 4, 4)`` float arrays mapping column vectors of the source frame into the
+target frame (``world_from_object`` maps object coordinates into world coordinates), metres.
+numpy only: these serve registration and averaging on CPU; networks use :mod:`couch.rotations`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from couch.rotations import rotation_angle
+
+
+def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` rotation and ``(..., 3)`` translation → ``(..., 4, 4)`` transform."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    translation = np.asarray(translation, dtype=np.float64)
+    lead = np.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    out = np.zeros((*lead, 4, 4))
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def invert_transform(transform: np.ndarray) -> np.ndarray:
+    """Inverse of rigid ``(..., 4, 4)`` transforms (uses R^T, not a general inverse)."""
+    r = np.swapaxes(transform[..., :3, :3], -1, -2)
+    return make_transform(r, -np.einsum("...ij,...j->...i", r, transform[..., :3, 3]))
+
+
+def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply ``(..., 4, 4)`` transforms to ``(..., N, 3)`` points → ``(..., N, 3)``."""
+    return (np.einsum("...ij,...nj->...ni", transform[..., :3, :3], points)
+            + transform[..., None, :3, 3])
+
+
+def fit_rigid_transform(source: np.ndarray, target: np.ndarray,
+                        weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rigid transform (Kabsch) taking ``(N, 3)`` source onto ``(N, 3)`` target.
+
+    Returns the ``(4, 4)`` transform ``T`` minimising ``Σ w_i |T·s_i − t_i|²``; needs N >= 3
+    non-collinear points.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3:
+        raise ValueError(f"source and target must both be (N, 3); got {source.shape} and "
+                         f"{target.shape}")
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    cs, ct = w @ source, w @ target
+    rot, _ = Rotation.align_vectors(target - ct, source - cs, weights=w)
+    r = rot.as_matrix()
+    return make_transform(r, ct - r @ cs)
+
+
+def average_transforms(transforms: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Average of ``(N, 4, 4)`` rigid transforms → ``(4, 4)``.
+
+    Rotation: the chordal L2 mean (scipy's ``Rotation.mean``, the quaternion eigenvector method);
+    translation: the weighted arithmetic mean. ``weights`` ``(N,)`` are non-negative confidences.
+    """
+    transforms = np.asarray(transforms, dtype=np.float64)
+    if transforms.ndim != 3 or transforms.shape[1:] != (4, 4) or len(transforms) == 0:
+        raise ValueError(f"expected (N, 4, 4) transforms with N >= 1, got {transforms.shape}")
+    w = np.ones(len(transforms)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(transforms),) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError("weights must be (N,), non-negative and not all zero")
+    r = Rotation.from_matrix(transforms[:, :3, :3]).mean(weights=w).as_matrix()
+    return make_transform(r, (w / w.sum()) @ transforms[:, :3, 3])
+
+
+def transform_distance(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation angle (radians) and translation distance (metres) between ``(..., 4, 4)`` poses."""
+    rel = np.swapaxes(a[..., :3, :3], -1, -2) @ b[..., :3, :3]
+    return rotation_angle(rel), np.linalg.norm(a[..., :3, 3] - b[..., :3, 3], axis=-1)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray,
+            up: np.ndarray | tuple[float, float, float] = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """``(4, 4)`` world-from-camera pose of an OpenCV-convention camera (+Z forward, +Y down,
+    +X right in the image) at ``eye`` looking at ``target``; ``up`` is the world's up direction."""
+    eye = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError("look_at: viewing direction is parallel to 'up'")
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return make_transform(np.stack([right, down, forward], axis=1), eye)

@@ -1,0 +1,62 @@
+"""Rigid transforms: inverse, Kabsch fit, averaging, look-at."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from couch.geometry import (
+    apply_transform,
+    average_transforms,
+    fit_rigid_transform,
+    invert_transform,
+    look_at,
+    make_transform,
+    transform_distance,
+)
+
+
+def _random_transforms(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return make_transform(Rotation.random(n, rng=rng).as_matrix(), rng.normal(0, 1, (n, 3)))
+
+
+def test_invert_and_apply():
+    t = _random_transforms(5)
+    assert np.allclose(invert_transform(t) @ t, np.eye(4), atol=1e-12)
+    pts = np.random.default_rng(1).normal(size=(5, 10, 3))
+    assert np.allclose(apply_transform(invert_transform(t), apply_transform(t, pts)), pts)
+
+
+def test_fit_rigid_transform_recovers_truth_under_noise():
+    rng = np.random.default_rng(2)
+    truth = _random_transforms(1, seed=3)[0]
+    src = rng.uniform(-0.5, 0.5, (500, 3))
+    dst = apply_transform(truth, src) + rng.normal(0, 0.002, (500, 3))
+    angle, dist = transform_distance(fit_rigid_transform(src, dst), truth)
+    assert np.degrees(angle) < 0.2 and dist < 0.001
+
+
+def test_average_of_noisy_poses_is_closer_than_the_samples():
+    rng = np.random.default_rng(4)
+    truth = _random_transforms(1, seed=5)[0]
+    noise = make_transform(Rotation.from_rotvec(rng.normal(0, 0.05, (200, 3))).as_matrix(),
+                           rng.normal(0, 0.02, (200, 3)))
+    samples = truth @ noise
+    avg = average_transforms(samples)
+    angle, dist = transform_distance(avg, truth)
+    sample_angle, sample_dist = transform_distance(samples, truth)
+    assert angle < 0.2 * np.median(sample_angle) and dist < 0.2 * np.median(sample_dist)
+    # zero weight removes an outlier entirely
+    outlier = _random_transforms(1, seed=9)
+    with_outlier = np.concatenate([samples, outlier])
+    w = np.append(np.ones(200), 0.0)
+    assert np.allclose(average_transforms(with_outlier, w), avg)
+
+
+def test_look_at_points_the_optical_axis_at_the_target():
+    pose = look_at([2.0, 1.5, 3.0], [0.0, 1.0, 0.0])
+    target_cam = apply_transform(invert_transform(pose), np.array([[0.0, 1.0, 0.0]]))[0]
+    assert np.allclose(target_cam[:2], 0.0, atol=1e-12) and target_cam[2] > 0
+    # world up (+Y) appears as image up (−Y in OpenCV camera coordinates)
+    assert (invert_transform(pose)[:3, :3] @ np.array([0.0, 1.0, 0.0]))[1] < 0

@@ -1,0 +1,3 @@
+"""Benchmark scripts: each prints ratios measured in one run.
+
+Run one with ``python -m couch.tools.bench.NAME``."""
