@@ -139,3 +139,13 @@ def test_couch_inspect_console_script_exit_code(tmp_path):
     exe = [sys.executable, "-m", "couch.cli", str(tmp_path / "bad.h5")]
     result = subprocess.run(exe, capture_output=True, text=True, check=False)
     assert result.returncode == 1 and "invalid file" in result.stderr
+
+
+def test_atomic_write_gives_ordinary_permissions(tmp_path, processed_session):
+    import os
+
+    path = tmp_path / "processed.h5"
+    write_processed(path, processed_session)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
