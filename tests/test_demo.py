@@ -5,10 +5,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import open3d as o3d
-from couch.tools.demo import main, seated_body
-from couch.tools.render import Mesh, render
 
 from couch.geometry import look_at
+from couch.tools.demo import main, seated_body
+from couch.tools.render import Mesh, render
 
 
 def test_seated_body_has_feet_on_the_floor_and_hands_on_the_thighs(body_model):

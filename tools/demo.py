@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import torch
 import trimesh
-from couch.tools.render import Mesh, intrinsics, render
 
 from couch.atomic import atomic_path
 from couch.body import load_body_model, sitting_pose
 from couch.geometry import look_at
+from couch.tools.render import Mesh, intrinsics, render
 
 
 def seated_body(model_name: str, betas: np.ndarray | None = None) -> tuple[np.ndarray, float]:

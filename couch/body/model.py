@@ -129,8 +129,8 @@ class BodyModel(torch.nn.Module):
         if betas is None:
             return torch.zeros(batch, self.num_betas, dtype=self.dtype, device=self.device)
         betas = self._tensor(betas)
-        if betas.ndim == 1:
-            betas = betas.expand(batch, -1)
+        if betas.ndim == 1 or len(betas) == 1:
+            betas = betas.reshape(1, -1).expand(batch, -1)
         if betas.shape[-1] > self.num_betas:
             raise ValueError(f"{self.name}: got {betas.shape[-1]} betas, the model has "
                              f"{self.num_betas}")
@@ -155,7 +155,8 @@ class BodyModel(torch.nn.Module):
         """Pose and shape bodies.
 
         Args (any may be omitted; tensors or arrays, cast to the model's dtype and device):
-            betas: (B,K) or (K,) shape coefficients, K <= num_betas (zero-padded).
+            betas: (B,K), (1,K) or (K,) shape coefficients (one shape broadcasts over the
+                batch), K <= num_betas (zero-padded).
             global_orient: (B,3) axis-angle or (B,3,3) matrices: the pelvis's world rotation.
             Poses and translations are always batched (leading B), even for B = 1.
             body_pose: (B,69) / (B,23,3) axis-angle or (B,23,3,3) matrices, SMPL joint order.

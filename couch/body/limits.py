@@ -1,0 +1,97 @@
+"""Anatomical joint limits for SMPL's 23 body joints.
+
+Each joint's local rotation (relative to its parent, in the rest frame: X = body's left, Y up,
+Z forward) is decomposed into intrinsic Euler angles about X, Y and Z and each angle must lie in
+the joint's range (degrees). The decomposition order puts each joint's main hinge axis first
+(the hinge, then the other rotations in the hinged frame; the middle angle spans only ±90°):
+X for legs and spine, Y for elbows (which flex about Y), Z for shoulders (which lower the arm
+about Z). Ranges follow clinical range-of-motion tables (e.g. AAOS "Joint Motion"), widened a
+little because SMPL's joint axes are not anatomical axes; shoulders get wide ranges since their
+Euler angles wrap easily. Left/right ranges are mirror images: mirroring about the sagittal
+plane (x → −x) keeps the x angle and negates y and z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from couch.body.skeleton import JOINT_NAMES
+
+Range = tuple[float, float]
+
+# Left-side (and central) joints: (x range, y range, z range) in degrees.
+#   hips: x < 0 flexes the thigh forward; z > 0 abducts the left leg.
+#   knees: x > 0 flexes. ankles: x > 0 points the toes down.
+#   spine: x > 0 bends forward. left elbow: y < 0 flexes. left shoulder: z < 0 lowers the arm.
+_LEFT_AND_CENTRE: dict[str, tuple[Range, Range, Range]] = {
+    "left_hip": ((-140, 40), (-60, 60), (-40, 75)),
+    "spine1": ((-35, 60), (-40, 40), (-35, 35)),
+    "left_knee": ((-10, 160), (-40, 40), (-25, 25)),
+    "spine2": ((-35, 60), (-40, 40), (-35, 35)),
+    "left_ankle": ((-45, 60), (-40, 40), (-35, 35)),
+    "spine3": ((-35, 60), (-40, 40), (-35, 35)),
+    "left_foot": ((-50, 50), (-30, 30), (-30, 30)),
+    "neck": ((-50, 60), (-70, 70), (-45, 45)),
+    "left_collar": ((-40, 40), (-40, 40), (-40, 40)),
+    "head": ((-50, 60), (-70, 70), (-45, 45)),
+    "left_shoulder": ((-180, 180), (-135, 135), (-110, 110)),
+    "left_elbow": ((-100, 100), (-165, 15), (-40, 40)),
+    "left_wrist": ((-100, 100), (-90, 90), (-75, 75)),
+    "left_hand": ((-45, 45), (-45, 45), (-45, 45)),
+}
+
+
+def _mirror(r: tuple[Range, Range, Range]) -> tuple[Range, Range, Range]:
+    (x, y, z) = r
+    return (x, (-y[1], -y[0]), (-z[1], -z[0]))
+
+
+JOINT_LIMITS_DEG: dict[str, tuple[Range, Range, Range]] = {}
+for _name in JOINT_NAMES[1:]:
+    if _name.startswith("right_"):
+        JOINT_LIMITS_DEG[_name] = _mirror(_LEFT_AND_CENTRE["left_" + _name[len("right_"):]])
+    else:
+        JOINT_LIMITS_DEG[_name] = _LEFT_AND_CENTRE[_name]
+
+_ORDER = {"left_elbow": "YXZ", "right_elbow": "YXZ", "left_shoulder": "ZYX",
+          "right_shoulder": "ZYX", "left_wrist": "XZY", "right_wrist": "XZY"}
+
+_LOW = np.array([[r[0] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
+_HIGH = np.array([[r[1] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
+
+
+def body_pose_euler_deg(body_pose: np.ndarray) -> np.ndarray:
+    """(T,69) axis-angle body pose → (T,23,3) Euler angles (degrees) about X, Y, Z, each joint
+    decomposed in its own order (see the module docstring)."""
+    aa = np.asarray(body_pose, dtype=np.float64).reshape(-1, 23, 3)
+    out = np.empty_like(aa)
+    for j, name in enumerate(JOINT_NAMES[1:]):
+        order = _ORDER.get(name, "XYZ")
+        angles = Rotation.from_rotvec(aa[:, j]).as_euler(order, degrees=True)
+        out[:, j, ["XYZ".index(a) for a in order]] = angles
+    return out
+
+
+def joint_limit_excess_deg(body_pose: np.ndarray) -> np.ndarray:
+    """(T,23) degrees by which each joint's worst Euler angle leaves its range (0 inside)."""
+    e = body_pose_euler_deg(body_pose)
+    return np.maximum(np.maximum(_LOW - e, e - _HIGH), 0.0).max(-1)
+
+
+def clamp_to_limits(body_pose: np.ndarray) -> np.ndarray:
+    """(T,69) axis-angle body pose with every joint's Euler angles clipped into its range.
+
+    Rotations already inside their ranges are returned unchanged (to float precision).
+    """
+    aa = np.asarray(body_pose, dtype=np.float64).reshape(-1, 23, 3)
+    out = aa.copy()
+    for j, name in enumerate(JOINT_NAMES[1:]):
+        order = _ORDER.get(name, "XYZ")
+        slots = ["XYZ".index(a) for a in order]
+        angles = Rotation.from_rotvec(aa[:, j]).as_euler(order, degrees=True)
+        clipped = np.clip(angles, _LOW[j, slots], _HIGH[j, slots])
+        moved = np.any(np.abs(clipped - angles) > 1e-9, axis=1)
+        if moved.any():
+            out[moved, j] = Rotation.from_euler(order, clipped[moved], degrees=True).as_rotvec()
+    return out.reshape(np.shape(body_pose))

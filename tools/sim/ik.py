@@ -1,0 +1,144 @@
+"""Analytic limb IK and forward kinematics for the simulator's procedural motion (numpy).
+
+Everything is batched over frames (leading T). Rotations are (T,3,3) matrices; positions metres in
+the world frame (Y up). A limb is three SMPL joints (hip-knee-ankle or shoulder-elbow-wrist); its
+rest directions come from the shaped rest skeleton, so the solved pose reaches the targets exactly
+with the body model's own bone lengths.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from couch.body import PARENTS
+from couch.rotations import matrix_to_quat, quat_to_matrix
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    """Unit vectors along the last axis (zero vectors stay zero)."""
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, 1e-12)
+
+
+def frame_from(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
+    """(…,3,3) orthonormal frames: column 0 along ``primary``, column 1 = ``secondary`` made
+    perpendicular to it, column 2 their cross product."""
+    x = normalize(primary)
+    y = normalize(secondary - (secondary * x).sum(-1, keepdims=True) * x)
+    return np.stack([x, y, np.cross(x, y)], axis=-1)
+
+
+def align(rest_primary: np.ndarray, rest_secondary: np.ndarray, primary: np.ndarray,
+          secondary: np.ndarray) -> np.ndarray:
+    """Rotation taking the rest frame (primary, secondary) onto the desired one: (…,3,3)."""
+    return frame_from(primary, secondary) @ np.swapaxes(
+        frame_from(rest_primary, rest_secondary), -1, -2)
+
+
+def yaw_matrix(heading: np.ndarray) -> np.ndarray:
+    """(T,3,3) rotations about +Y by ``heading`` radians (heading 0 faces +Z)."""
+    c, s = np.cos(heading), np.sin(heading)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1),
+                     np.stack([-s, z, c], -1)], -2)
+
+
+def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
+    """(T,3,3) rotations about a principal axis ('x', 'y' or 'z') by ``angle`` radians."""
+    c, s = np.cos(angle), np.sin(angle)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    if axis == "x":
+        rows = [[o, z, z], [z, c, -s], [z, s, c]]
+    elif axis == "y":
+        rows = [[c, z, s], [z, o, z], [-s, z, c]]
+    else:
+        rows = [[c, -s, z], [s, c, z], [z, z, o]]
+    return np.stack([np.stack(r, -1) for r in rows], -2)
+
+
+def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
+                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Middle-joint position of a two-bone chain reaching ``target`` from ``root``.
+
+    Args:
+        root, target, pole: (T,3); the middle joint bends towards ``pole`` (a direction).
+    Returns:
+        middle (T,3), and the unit directions of the upper and lower bones (T,3) each.
+        Targets out of reach are clamped to 99.9% of full extension along the same line.
+    """
+    to_target = target - root
+    dist = np.linalg.norm(to_target, axis=-1, keepdims=True)
+    e = to_target / np.maximum(dist, 1e-9)
+    d = np.clip(dist, abs(len_upper - len_lower) + 1e-4, 0.999 * (len_upper + len_lower))
+    cos_a = np.clip((len_upper**2 + d**2 - len_lower**2) / (2 * len_upper * d), -1, 1)
+    bend = normalize(pole - (pole * e).sum(-1, keepdims=True) * e)
+    middle = root + len_upper * (cos_a * e + np.sqrt(1 - cos_a**2) * bend)
+    end = root + e * d
+    return middle, normalize(middle - root), normalize(end - middle)
+
+
+class Skeleton:
+    """Forward kinematics over SMPL's 24 joints for one shaped body (rest joints (24,3))."""
+
+    def __init__(self, rest_joints: np.ndarray) -> None:
+        self.rest = np.asarray(rest_joints, dtype=np.float64)
+        self.parents = np.asarray(PARENTS)
+
+    def offset(self, joint: int) -> np.ndarray:
+        """Rest-pose vector from the parent to ``joint`` (3,)."""
+        return self.rest[joint] - self.rest[self.parents[joint]]
+
+    def bone_length(self, a: int, b: int) -> float:
+        return float(np.linalg.norm(self.rest[b] - self.rest[a]))
+
+    def forward(self, root_pos: np.ndarray, global_rot: dict[int, np.ndarray],
+                upto: list[int]) -> dict[int, np.ndarray]:
+        """World positions (T,3) of the joints in ``upto`` given global rotations of their
+        ancestors (joint index -> (T,3,3)); ``root_pos`` is the pelvis joint (T,3)."""
+        pos = {0: root_pos}
+        needed = set(upto) | {a for u in upto for a in self.ancestors(u)}
+        for j in sorted(needed):
+            if j == 0:
+                continue
+            p = self.parents[j]
+            pos[j] = pos[p] + global_rot[p] @ self.offset(j)
+        return pos
+
+    def ancestors(self, joint: int) -> list[int]:
+        chain = []
+        while self.parents[joint] >= 0:
+            joint = int(self.parents[joint])
+            chain.append(joint)
+        return chain
+
+
+def local_from_global(global_rot: dict[int, np.ndarray], num_frames: int) -> np.ndarray:
+    """SMPL local rotations (T,24,3,3) from global ones (missing joints inherit the parent's
+    global rotation, i.e. get an identity local rotation)."""
+    eye = np.broadcast_to(np.eye(3), (num_frames, 3, 3))
+    full: dict[int, np.ndarray] = {}
+    local = np.empty((num_frames, 24, 3, 3))
+    for j in range(24):
+        p = PARENTS[j]
+        parent_g = eye if p < 0 else full[p]
+        full[j] = global_rot.get(j, parent_g)
+        local[:, j] = np.swapaxes(parent_g, -1, -2) @ full[j]
+    return local
+
+
+def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Move the child's twist about ``axis`` (the bone between them, rest frame) into the parent.
+
+    The child's global rotation and the child joint's position are unchanged (the parent turns
+    about the bone it shares with the child). Used for forearm pronation: IK leaves all of it in
+    the wrist, anatomy puts it along the forearm. Returns new (parent_local, child_local).
+    """
+    axis = normalize(np.asarray(axis, dtype=np.float64))
+    q = matrix_to_quat(child_local)
+    proj = (q[..., 1:] @ axis)[..., None] * axis
+    twist = np.concatenate([q[..., :1], proj], axis=-1)
+    norm = np.linalg.norm(twist, axis=-1, keepdims=True)
+    twist = np.where(norm > 1e-9, twist / np.maximum(norm, 1e-12), [1.0, 0.0, 0.0, 0.0])
+    t = quat_to_matrix(twist)
+    return parent_local @ t, np.swapaxes(t, -1, -2) @ child_local

@@ -1,0 +1,798 @@
+"""Procedural human-chair motion on the bundled body model: walk up, turn, sit, act, leave.
+
+The generator works in the chair's frame (chair at the origin, seat facing +Z, floor y = 0) and
+builds every sequence from *targets*: footprints (planted feet never move), a pelvis trajectory,
+torso lean, and wrist targets (palms on the chair, or on the thighs). Limbs reach their targets
+with analytic two-bone IK on the shaped skeleton, so stance feet do not slide and hands land
+exactly on the chair's surface. Poses are generated on a dense 120 Hz grid and resampled to any
+clock (Kinect frames at 30 fps, MVN at 60 Hz) with slerp.
+
+Interaction types and the COUCH dataset's mix (right hand 17.3%, left 14.0%, both 28.9%,
+no contact 17.4%, free 15.2%, locomotion 7.2%) are in :data:`INTERACTION_MIX`; per-frame labels
+are 0 (locomotion) while walking and the sequence's type from the turn at the chair onwards.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation, Slerp
+
+from couch.body import JOINT_INDEX, BodyModel
+from couch.body.limits import clamp_to_limits
+from couch.rotations import matrix_to_axis_angle
+from couch.tools.sim.ik import (
+    Skeleton,
+    align,
+    axis_rotation,
+    local_from_global,
+    normalize,
+    transfer_twist,
+    two_bone_ik,
+    yaw_matrix,
+)
+
+# Schema labels (DESIGN.md /labels/interaction) and the COUCH dataset's proportions.
+INTERACTION_LABEL = {"locomotion": 0, "right_hand": 1, "left_hand": 2, "both_hands": 3,
+                     "no_contact": 4, "free": 5}
+INTERACTION_MIX = {"right_hand": 0.173, "left_hand": 0.140, "both_hands": 0.289,
+                   "no_contact": 0.174, "free": 0.152, "locomotion": 0.072}
+
+DENSE_HZ = 120.0
+J = JOINT_INDEX
+
+
+@dataclasses.dataclass
+class SeatGeometry:
+    """What the generator needs to know of a chair, in the chair frame (metres, +Z = facing).
+
+    hand_targets: part name (``left_armrest``, ``right_seat``, ``left_back``, …) → candidate palm
+    placements [(point (3,), outward surface normal (3,)), …]; "left" is the sitter's left (+X).
+    """
+
+    seat_height: float
+    seat_center: np.ndarray
+    seat_front_z: float
+    seat_width: float
+    back_front_z: float | None
+    half_width: float
+    back_z: float
+    hand_targets: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+
+
+@dataclasses.dataclass
+class MotionConfig:
+    """Knobs of the generator; ranges are sampled uniformly per sequence."""
+
+    walk_speed: tuple[float, float] = (1.0, 1.3)  # m/s
+    step_length: tuple[float, float] = (0.5, 0.62)  # m between consecutive footprints
+    start_distance: tuple[float, float] = (2.0, 4.0)  # m from the chair
+    sit_duration: tuple[float, float] = (1.3, 1.8)  # s from standing to seated
+    seated_duration: tuple[float, float] = (2.0, 4.0)  # s when no total duration is asked
+    stand_and_leave: float = 0.5  # probability of standing up and walking away
+    beta_std: float = 1.0
+
+
+@dataclasses.dataclass
+class Motion:
+    """A generated sequence on the dense grid (chair frame).
+
+    time: (T,) s; global_rot: (T,3,3) pelvis world rotation; local_rot: (T,24,3,3) SMPL local
+    rotations (index 0 equals global_rot); transl: (T,3) SMPL translation (pelvis joint −
+    its rest position); labels: (T,) int8 per-frame interaction labels; hand_contacts: side →
+    (start s, end s, contact point (3,), chair part) of palm contacts; phases: (name, start s,
+    end s).
+    """
+
+    interaction: str
+    betas: np.ndarray
+    time: np.ndarray
+    global_rot: np.ndarray
+    local_rot: np.ndarray
+    transl: np.ndarray
+    labels: np.ndarray
+    hand_contacts: dict[str, tuple[float, float, np.ndarray, str]]
+    phases: list[tuple[str, float, float]]
+
+    @property
+    def duration(self) -> float:
+        return float(self.time[-1])
+
+    def sample(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Poses at arbitrary ``times`` (s, clipped to the sequence): global_orient (N,3) and
+        body_pose (N,69) axis-angle, transl (N,3), labels (N,) int8."""
+        t = np.clip(np.asarray(times, dtype=np.float64), self.time[0], self.time[-1])
+        n, nj = len(t), self.local_rot.shape[1]
+        rots = Rotation.from_matrix(self.local_rot.transpose(1, 0, 2, 3).reshape(-1, 3, 3))
+        out = np.empty((nj, n, 3))
+        for j in range(nj):
+            out[j] = Slerp(self.time, rots[j * len(self.time):(j + 1) * len(self.time)])(
+                t).as_rotvec()
+        transl = np.stack([np.interp(t, self.time, self.transl[:, k]) for k in range(3)], -1)
+        idx = np.clip(np.searchsorted(self.time, t), 0, len(self.time) - 1)
+        return (out[0].astype(np.float32), out[1:].transpose(1, 0, 2).reshape(n, -1).astype(
+            np.float32), transl.astype(np.float32), self.labels[idx])
+
+
+# ----------------------------------------------------------------------------- timelines
+
+
+def smoothstep(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3 - 2 * u)
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclasses.dataclass
+class Footprint:
+    pos: np.ndarray  # (3,) ankle target on the floor plane (y = ankle height)
+    heading: float  # radians about +Y, 0 = +Z
+
+
+@dataclasses.dataclass
+class Step:
+    foot: int  # 0 left, 1 right
+    start: float
+    end: float
+    to: Footprint
+
+
+class Timeline:
+    """Per-foot planted/swing trajectories from a list of steps, evaluated on a time grid."""
+
+    def __init__(self, start_feet: tuple[Footprint, Footprint]) -> None:
+        self.start = start_feet
+        self.steps: list[Step] = []
+
+    def add(self, step: Step) -> None:
+        """Append a step; its heading is unwrapped to within π of the foot's previous heading,
+        so headings stay continuous and feet turn the short way."""
+        prev = self.last(step.foot).heading
+        step.to.heading = prev + float(wrap_angle(step.to.heading - prev))
+        self.steps.append(step)
+
+    def last(self, foot: int) -> Footprint:
+        for s in reversed(self.steps):
+            if s.foot == foot:
+                return s.to
+        return self.start[foot]
+
+    def end_time(self) -> float:
+        return max((s.end for s in self.steps), default=0.0)
+
+    def feet(self, t: np.ndarray, clearance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Ankle positions (2,T,3) and foot headings (2,T) at times ``t``."""
+        pos = np.empty((2, len(t), 3))
+        head = np.empty((2, len(t)))
+        for foot in (0, 1):
+            pos[foot] = self.start[foot].pos
+            head[foot] = self.start[foot].heading
+            prev = self.start[foot]
+            for s in (s for s in self.steps if s.foot == foot):
+                u = smoothstep((t - s.start) / (s.end - s.start))
+                moving = t >= s.start
+                dh = s.to.heading - prev.heading
+                pos[foot] = np.where(moving[:, None], prev.pos + u[:, None] * (s.to.pos - prev.pos)
+                                     , pos[foot])
+                head[foot] = np.where(moving, prev.heading + u * dh, head[foot])
+                lift = clearance * np.sin(np.pi * np.clip((t - s.start) / (s.end - s.start), 0, 1))
+                pos[foot, :, 1] += np.where(moving & (t <= s.end), lift, 0.0)
+                prev = s.to
+        return pos, head
+
+
+def hermite_path(p0: np.ndarray, h0: float, p1: np.ndarray, h1: float,
+                 via: list[np.ndarray] | None = None, n: int = 400) -> np.ndarray:
+    """Smooth planar path (n,2) in (x,z) through ``via`` points, leaving p0 along heading h0 and
+    arriving at p1 along heading h1 (Catmull-Rom segments with end tangents)."""
+    pts = [np.asarray(p0, float)] + [np.asarray(v, float) for v in (via or [])] + [
+        np.asarray(p1, float)]
+    tangents = []
+    for i in range(len(pts)):
+        if i == 0:
+            d = np.array([np.sin(h0), np.cos(h0)])
+        elif i == len(pts) - 1:
+            d = np.array([np.sin(h1), np.cos(h1)])
+        else:
+            d = normalize(pts[i + 1] - pts[i - 1])
+        seg = np.linalg.norm(pts[min(i + 1, len(pts) - 1)] - pts[max(i - 1, 0)])
+        tangents.append(d * max(seg, 0.3) * 0.5)
+    out = []
+    per = max(2, n // (len(pts) - 1))
+    for i in range(len(pts) - 1):
+        s = np.linspace(0, 1, per, endpoint=i == len(pts) - 2)[:, None]
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        out.append(h00 * pts[i] + h10 * tangents[i] + h01 * pts[i + 1] + h11 * tangents[i + 1])
+    return np.concatenate(out)
+
+
+def walk_steps(tl: Timeline, path: np.ndarray, t0: float, step_len: float, speed: float,
+               half_width: float, ankle_h: float, final_heading: float | None = None) -> float:
+    """Append alternating steps along ``path`` (n,2 in x,z) starting at time t0; returns the
+    end time. The last step brings the trailing foot alongside the leading one."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    length = s[-1]
+    n = max(1, int(np.ceil(length / step_len)))
+    step_len = length / n
+    step_time = step_len / speed
+    swing = 0.8 * step_time  # a foot swings for 80% of one step period
+
+    def footprint(at: float, foot: int, heading_override: float | None = None) -> Footprint:
+        i = np.searchsorted(s, at).clip(1, len(s) - 1)
+        d = path[i] - path[i - 1]
+        heading = float(np.arctan2(d[0], d[1])) if heading_override is None else heading_override
+        p = np.interp(at, s, path[:, 0]), np.interp(at, s, path[:, 1])
+        lateral = np.array([np.cos(heading), -np.sin(heading)])  # the body's left, in (x, z)
+        side = 1.0 if foot == 0 else -1.0
+        x, z = np.array(p) + side * half_width * lateral
+        return Footprint(np.array([x, ankle_h, z]), heading)
+
+    # Lead with the foot that is further behind along the path.
+    lead = 1
+    t = t0
+    for k in range(1, n + 1):
+        foot = lead if k % 2 == 1 else 1 - lead
+        last = k == n
+        tl.add(Step(foot, t, t + swing, footprint(min(k * step_len, length), foot,
+                                                  final_heading if last else None)))
+        t += step_time
+    trailing = 1 - tl.steps[-1].foot
+    tl.add(Step(trailing, t, t + swing, footprint(length, trailing, final_heading)))
+    return t + swing
+
+
+def turn_steps(tl: Timeline, t0: float, final: tuple[Footprint, Footprint], direction: float,
+               step_time: float) -> float:
+    """Turn on the spot onto the ``final`` footprints in three steps; ``direction`` ±1 picks the
+    way round (+1 turns left, counter-clockwise seen from above). Returns the end time."""
+    left, right = tl.last(0), tl.last(1)
+    start_heading = 0.5 * (left.heading + right.heading)
+    total = float(wrap_angle(final[0].heading - start_heading))
+    if abs(total) > 0.3 and np.sign(total) != direction:
+        total += direction * 2 * np.pi
+    end_heading = start_heading + total
+    centre_start = 0.5 * (left.pos + right.pos)
+    centre_end = 0.5 * (final[0].pos + final[1].pos)
+    half = 0.5 * np.linalg.norm(final[0].pos - final[1].pos)
+    t = t0
+    # The foot on the side we turn towards steps first.
+    first = 0 if direction > 0 else 1
+    for k, frac in enumerate((0.5, 1.0, 1.0)):
+        foot = first if k % 2 == 0 else 1 - first
+        if frac < 1.0:
+            h = start_heading + frac * total
+            centre = centre_start + frac * (centre_end - centre_start)
+            side = 1.0 if foot == 0 else -1.0
+            lateral = np.array([np.cos(h), 0.0, -np.sin(h)])
+            target = Footprint(centre + side * half * lateral, float(h))
+        else:
+            target = Footprint(final[foot].pos.copy(), end_heading)
+        # explicit continuous headings: no unwrapping, the turn goes the way asked
+        tl.steps.append(Step(foot, t, t + 0.8 * step_time, target))
+        t += step_time
+    return t - 0.2 * step_time
+
+
+# ----------------------------------------------------------------------------- the generator
+
+
+class _Body:
+    """Rest measurements of one shaped body needed to place targets."""
+
+    def __init__(self, model: BodyModel, betas: np.ndarray) -> None:
+        with torch.no_grad():
+            out = model(betas=torch.as_tensor(betas[None], dtype=model.dtype))
+        v = out.vertices[0].double().numpy()
+        self.rest = out.joints[0].double().numpy()
+        self.sk = Skeleton(self.rest)
+        sole = np.concatenate([model.contact_vertices["left_foot"],
+                               model.contact_vertices["right_foot"]])
+        self.ankle_h = float(self.rest[J["left_ankle"], 1] - v[sole, 1].min())
+        self.leg = self.sk.bone_length(J["left_hip"], J["left_knee"]), self.sk.bone_length(
+            J["left_knee"], J["left_ankle"])
+        self.arm = self.sk.bone_length(J["left_shoulder"], J["left_elbow"]), self.sk.bone_length(
+            J["left_elbow"], J["left_wrist"])
+        self.hip_below_pelvis = float(self.rest[0, 1] - self.rest[J["left_hip"], 1])
+        self.hip_half_width = float(abs(self.rest[J["left_hip"], 0]))
+        pelvis = v[model.contact_vertices["pelvis"]]
+        # Seated, the buttocks sit below and behind the pelvis joint.
+        self.seat_drop = float(self.rest[0, 1] - pelvis[:, 1].min()) * 0.55 + 0.03
+        self.buttock_back = float(self.rest[0, 2] - v[:, 2].min())
+        self.thigh_radius = 0.075
+        # Palm centre relative to the wrist in the rest (T-pose: palms down) frame, per side.
+        self.palm_offset = {}
+        for side in ("left", "right"):
+            hand = v[model.contact_vertices[f"{side}_hand"]]
+            w, k = self.rest[J[f"{side}_wrist"]], self.rest[J[f"{side}_hand"]]
+            along = (hand[:, 0] - w[0]) / (k[0] - w[0])
+            palm = hand[(along > 0.2) & (along < 0.9)]
+            palm = palm[palm[:, 1] < np.percentile(palm[:, 1], 25)]
+            self.palm_offset[side] = palm.mean(0) - w
+
+
+def _hand_candidates(seat: SeatGeometry, side: str) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    options = [(p, np.asarray(point, float), normalize(np.asarray(normal, float)))
+               for p in (f"{side}_armrest", f"{side}_seat", f"{side}_back")
+               for point, normal in seat.hand_targets.get(p, [])]
+    if not options:
+        raise ValueError(f"chair offers no {side}-hand contact target")
+    return options
+
+
+def sample_interaction(rng: np.random.Generator) -> str:
+    """An interaction type drawn with the COUCH dataset's proportions."""
+    names = list(INTERACTION_MIX)
+    p = np.array([INTERACTION_MIX[n] for n in names])
+    return names[rng.choice(len(names), p=p / p.sum())]
+
+
+def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generator, *,
+                    interaction: str | None = None, duration: float | None = None,
+                    betas: np.ndarray | None = None, config: MotionConfig | None = None,
+                    chair_mesh: tuple[np.ndarray, np.ndarray] | None = None) -> Motion:
+    """One human-chair sequence in the chair frame.
+
+    Args:
+        model: body model (its rest skeleton sets bone lengths; use the coarse one for speed).
+        seat: the chair's geometry and hand targets.
+        interaction: one of :data:`INTERACTION_LABEL` (random with the COUCH mix when None).
+        duration: total seconds wanted (the seated phase absorbs the slack; the start distance
+            shrinks towards 1.2 m when time is short). None: natural length.
+        betas: (10,) subject shape (random N(0, config.beta_std) when None).
+        chair_mesh: the chair's watertight (vertices, faces) in the chair frame; when given, the
+            body is settled out of any penetration after the targets are solved.
+    """
+    cfg = config or MotionConfig()
+    interaction = interaction or sample_interaction(rng)
+    if interaction not in INTERACTION_LABEL:
+        raise ValueError(f"unknown interaction {interaction!r}; one of {list(INTERACTION_LABEL)}")
+    betas = np.clip(rng.normal(0, cfg.beta_std, 10), -2.5, 2.5) if betas is None else np.asarray(
+        betas, float)
+    body = _Body(model, betas)
+    speed = rng.uniform(*cfg.walk_speed)
+    step_len = rng.uniform(*cfg.step_length)
+    leg = sum(body.leg)
+    stand_h = body.ankle_h + 0.985 * leg + body.hip_below_pelvis
+    walk_h = body.ankle_h + np.sqrt((0.985 * leg) ** 2 - (step_len / 2) ** 2) + (
+        body.hip_below_pelvis)
+
+    # Seated configuration: pelvis over the seat, feet planted in front of it.
+    seat_c = np.asarray(seat.seat_center, float)
+    if seat.back_front_z is not None:
+        pelvis_z = seat.back_front_z + body.buttock_back + rng.uniform(0.02, 0.06)
+    else:
+        pelvis_z = seat_c[2] - 0.05
+    pelvis_z = min(pelvis_z, seat.seat_front_z - 0.12)
+    seated_pelvis = np.array([seat_c[0], seat.seat_height + body.seat_drop, pelvis_z])
+    knee_z = seated_pelvis[2] + body.leg[0] * 0.97
+    # Feet under or a little before the knees, and far enough from the seat's front edge that the
+    # calves clear it while turning and standing (a calf reaches ~10 cm behind the ankle).
+    feet_z = max(knee_z + rng.uniform(-0.02, 0.08), seat.seat_front_z + 0.15)
+    feet_apart = body.hip_half_width + rng.uniform(0.0, 0.06)
+    sit_feet = (Footprint(np.array([seat_c[0] + feet_apart, body.ankle_h, feet_z]), 0.0),
+                Footprint(np.array([seat_c[0] - feet_apart, body.ankle_h, feet_z]), 0.0))
+    pre_sit = np.array([seat_c[0], stand_h, feet_z - 0.02])
+
+    # Approach: start 2-4 m away (closer when time is short), walk to face the chair.
+    walk_time_budget = None if duration is None else max(0.0, duration - 6.0)
+    dist = rng.uniform(*cfg.start_distance)
+    if walk_time_budget is not None:
+        dist = float(np.clip(min(dist, 1.0 + walk_time_budget * speed * 0.8), 1.2, None))
+    sit = interaction != "locomotion"
+    approach = np.array([seat_c[0], feet_z + 0.08])
+    angle = rng.uniform(-np.pi * 0.85, np.pi * 0.85)  # around the chair, mostly not behind
+    start_xz = approach + dist * np.array([np.sin(angle), np.cos(angle)])
+    start_heading = float(np.arctan2(*(approach - start_xz)) + rng.normal(0, 0.6))
+    via = []
+    if start_xz[1] < seat.seat_front_z + 0.3:  # beside or behind the chair: go round it
+        side = np.sign(start_xz[0]) or 1.0
+        via.append(np.array([side * (seat.half_width + 0.75), seat.seat_front_z + 0.9]))
+    if not sit:  # walk past the chair instead of stopping at it
+        end = approach + np.array([rng.choice([-1, 1]) * rng.uniform(1.5, 2.5),
+                                   rng.uniform(0.5, 1.5)])
+        via.append(approach + np.array([0.0, 0.4]))
+        path = hermite_path(start_xz, start_heading, end, float(np.arctan2(*(end - via[-1]))),
+                            via)
+    else:
+        via.append(approach + np.array([0.0, 0.6]))
+        path = hermite_path(start_xz, start_heading, approach, np.pi, via)
+
+    h0 = start_heading
+    lateral0 = np.array([np.cos(h0), 0.0, -np.sin(h0)])
+    start_centre = np.array([start_xz[0], body.ankle_h, start_xz[1]])
+    tl = Timeline((Footprint(start_centre + feet_apart * lateral0, h0),
+                   Footprint(start_centre - feet_apart * lateral0, h0)))
+    t = 0.4
+    phases = []
+    t_walk_end = walk_steps(tl, path, t, step_len, speed, feet_apart, body.ankle_h,
+                            final_heading=np.pi if sit else None)
+    phases.append(("walk", 0.0, t_walk_end))
+    t = t_walk_end
+    hand_plan: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {}
+    if sit:
+        t_turn_end = turn_steps(tl, t + 0.1, sit_feet, float(rng.choice([-1.0, 1.0])),
+                                step_time=rng.uniform(0.45, 0.6))
+        phases.append(("turn", t, t_turn_end))
+        t_sit0 = t_turn_end + rng.uniform(0.0, 0.2)
+        t_sit1 = t_sit0 + rng.uniform(*cfg.sit_duration)
+        phases.append(("sit", t_sit0, t_sit1))
+        sides = {"right_hand": ["right"], "left_hand": ["left"],
+                 "both_hands": ["left", "right"]}.get(interaction, [])
+        for side in sides:
+            hand_plan[side] = _hand_candidates(seat, side)
+        natural = rng.uniform(*cfg.seated_duration)
+        leave = rng.random() < cfg.stand_and_leave
+        if duration is not None:
+            natural = max(1.0, duration - t_sit1 - (4.0 if leave else 0.0))
+            if duration - t_sit1 - natural < 3.0:
+                leave = False
+                natural = max(1.0, duration - t_sit1)
+        t_seated_end = t_sit1 + natural
+        phases.append(("seated", t_sit1, t_seated_end))
+        end = t_seated_end
+        if leave:
+            t_stand1 = t_seated_end + rng.uniform(1.2, 1.6)
+            phases.append(("stand", t_seated_end, t_stand1))
+            exit_angle = rng.uniform(-1.2, 1.2)
+            exit_xz = pre_sit[[0, 2]] + rng.uniform(1.5, 2.5) * np.array(
+                [np.sin(exit_angle), np.cos(exit_angle)])
+            leave_path = hermite_path(pre_sit[[0, 2]], 0.0, exit_xz, exit_angle)
+            t_leave_end = walk_steps(tl, leave_path, t_stand1 + 0.1, step_len, speed, feet_apart,
+                                     body.ankle_h)
+            phases.append(("leave", t_stand1, t_leave_end))
+            end = t_leave_end + 0.3
+    else:
+        end = t_walk_end + 0.4
+    if duration is not None:
+        end = max(end, duration)
+
+    time = np.arange(0.0, end + 1e-9, 1.0 / DENSE_HZ)
+    args = (model, body, betas, interaction, seat, tl, time, phases, hand_plan, pre_sit,
+            seated_pelvis, walk_h, stand_h, speed, step_len, int(rng.integers(2**31)))
+    offset = np.zeros((len(time), 3))
+    motion = _solve(*args, offset)
+    if chair_mesh is not None and sit:
+        # Settle the body out of the chair: push the pelvis along the surface normal at the
+        # deepest penetration, re-solve the limbs, repeat.
+        for _ in range(4):
+            push = _penetration_push(model, motion, chair_mesh, phases)
+            if not push.any():
+                break
+            offset += push
+            motion = _solve(*args, offset)
+    return motion
+
+
+def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
+                      phases: list[tuple[str, float, float]], tol: float = 0.004) -> np.ndarray:
+    """(T,3) pelvis displacement that would lift the body out of the chair, from the deepest
+    penetrating vertex per frame (sampled at 15 Hz over the sit/seated/stand phases)."""
+    import open3d as o3d
+
+    spans = [(a, b) for name, a, b in phases if name in ("turn", "sit", "seated", "stand")]
+    t0, t1 = min(a for a, _ in spans), max(b for _, b in spans)
+    ts = np.arange(t0, t1, 1 / 15.0)
+    go, bp, tr, _ = motion.sample(ts)
+    with torch.no_grad():
+        v = model(betas=motion.betas[None], global_orient=go, body_pose=bp,
+                  transl=tr).vertices.double().numpy()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(chair_mesh[0].astype(np.float32)),
+                        o3d.core.Tensor(chair_mesh[1].astype(np.uint32)))
+    pts = o3d.core.Tensor(v.reshape(-1, 3).astype(np.float32))
+    sd = scene.compute_signed_distance(pts).numpy().reshape(v.shape[:2])
+    worst = sd.argmin(axis=1)
+    depth = -sd[np.arange(len(ts)), worst]
+    if not (depth > tol).any():
+        return np.zeros((len(motion.time), 3))
+    deep = o3d.core.Tensor(v[np.arange(len(ts)), worst].astype(np.float32))
+    normal = scene.compute_closest_points(deep)["primitive_normals"].numpy().astype(float)
+    push_s = np.where((depth > tol)[:, None], (depth + tol)[:, None] * normal, 0.0)
+    push = np.stack([np.interp(motion.time, ts, push_s[:, k], left=0, right=0)
+                     for k in range(3)], -1)
+    return 1.5 * gaussian_filter1d(push, 0.1 * DENSE_HZ, axis=0)
+
+
+def _phase(phases: list[tuple[str, float, float]], name: str) -> tuple[float, float] | None:
+    for n, a, b in phases:
+        if n == name:
+            return a, b
+    return None
+
+
+def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timeline,
+           time: np.ndarray, phases, hand_plan, pre_sit, seated_pelvis, walk_h, stand_h, speed,
+           step_len, seed: int, offset: np.ndarray) -> Motion:
+    rng = np.random.default_rng(seed)
+    n = len(time)
+    feet, feet_head = tl.feet(time, clearance=0.07)
+    sit = _phase(phases, "sit")
+    seated = _phase(phases, "seated")
+    stand = _phase(phases, "stand")
+
+    # Pelvis while on the feet: between the feet, smoothed; a bob at twice the step rate.
+    mid = 0.5 * (feet[0] + feet[1])
+    sigma = 0.12 * DENSE_HZ
+    pelvis = gaussian_filter1d(mid, sigma, axis=0, mode="nearest")
+    heading = gaussian_filter1d(feet_head.mean(0), sigma, mode="nearest")
+    moving = gaussian_filter1d((np.linalg.norm(np.gradient(mid, axis=0), axis=1) * DENSE_HZ
+                                > 0.05).astype(float), sigma, mode="nearest")
+    step_rate = speed / step_len
+    bob = 0.012 * np.cos(2 * np.pi * step_rate * time) * moving
+    pelvis[:, 1] = stand_h + moving * (walk_h - stand_h) + bob
+    pitch = np.deg2rad(4.0) * moving  # slight forward lean while walking
+    spine = np.zeros(n)
+
+    # Sitting down and standing up: pelvis moves back and down while the torso leans forward.
+    sit_w = np.zeros(n)
+    if sit is not None:
+        u_sit = smoothstep((time - sit[0]) / (sit[1] - sit[0]))
+        u_up = 0.0 if stand is None else smoothstep((time - stand[0]) / (stand[1] - stand[0]))
+        sit_w = u_sit * (1 - u_up)
+        # The hips go down a little ahead of going back, so the knees travel forward over the
+        # feet (as people sit) instead of back into the seat's front edge.
+        back = smoothstep(sit_w)
+        down = smoothstep(sit_w * 1.15)
+        target = np.empty((n, 3))
+        target[:, 0] = pre_sit[0] + back * (seated_pelvis[0] - pre_sit[0])
+        target[:, 2] = pre_sit[2] + back * (seated_pelvis[2] - pre_sit[2])
+        target[:, 1] = pre_sit[1] + down * (seated_pelvis[1] - pre_sit[1])
+        w = smoothstep(np.clip(sit_w * 8, 0, 1)) if stand is None else np.where(
+            time < 0.5 * (sit[1] + stand[0]), smoothstep(np.clip((time - sit[0]) * 4, 0, 1)),
+            1 - smoothstep(np.clip((time - stand[1]) * 4 + 1, 0, 1)))
+        pelvis = pelvis * (1 - w[:, None]) + target * w[:, None] + offset
+        lean = np.sin(np.pi * np.clip(sit_w, 0, 1)) ** 1.5
+        pitch = pitch * (1 - w) + np.deg2rad(28) * lean
+        spine = spine + np.deg2rad(22) * lean
+        seat_heading = float(np.interp(sit[0], time, feet_head.mean(0)))
+        heading = heading * (1 - w) + w * seat_heading
+
+    # Seated behaviour: small sway; free interaction leans back and crosses the legs.
+    free_w = np.zeros(n)
+    if seated is not None:
+        in_seat = ((time >= seated[0]) & (time <= seated[1])).astype(float)
+        in_seat = gaussian_filter1d(in_seat, 0.2 * DENSE_HZ)
+        phase0 = rng.uniform(0, 2 * np.pi)
+        spine += in_seat * np.deg2rad(3) * np.sin(2 * np.pi * 0.25 * time + phase0)
+        if interaction == "free":
+            a = seated[0] + 0.3 * (seated[1] - seated[0])
+            b = seated[1] - 0.15 * (seated[1] - seated[0])
+            free_w = smoothstep((time - a) / 0.8) * (1 - smoothstep((time - b) / 0.8))
+            pitch -= np.deg2rad(rng.uniform(8, 14)) * free_w
+            pelvis[:, 2] += 0.03 * free_w
+
+    go = yaw_matrix(heading) @ axis_rotation("x", pitch)
+    g: dict[int, np.ndarray] = {0: go}
+    for jn in ("spine1", "spine2", "spine3"):
+        g[J[jn]] = g[J["pelvis"] if jn == "spine1" else J[f"spine{int(jn[-1]) - 1}"]] @ (
+            axis_rotation("x", spine / 3))
+    head_fix = -(pitch + spine) * 0.45
+    g[J["neck"]] = g[J["spine3"]] @ axis_rotation("x", head_fix)
+    g[J["head"]] = g[J["neck"]] @ axis_rotation("x", head_fix)
+    for side in ("left", "right"):
+        g[J[f"{side}_collar"]] = g[J["spine3"]]
+    pos = body.sk.forward(pelvis, g, [J["left_hip"], J["right_hip"], J["left_shoulder"],
+                                      J["right_shoulder"]])
+
+    # Legs: ankles on their footprints; crossing the legs lifts the right ankle over the left knee.
+    forward = np.stack([np.sin(heading), np.zeros(n), np.cos(heading)], -1)
+    for foot, side in ((0, "left"), (1, "right")):
+        hip = pos[J[f"{side}_hip"]]
+        ankle = feet[foot].copy()
+        foot_fwd = np.stack([np.sin(feet_head[foot]), np.zeros(n), np.cos(feet_head[foot])], -1)
+        outward = (1 if side == "left" else -1) * np.cross([0.0, 1.0, 0.0], forward)
+        pole = normalize(forward + foot_fwd) + 0.15 * outward
+        if side == "right" and free_w.any():
+            # cross the ankles: the right foot rests over the left one, a little ahead of it
+            left_dir = np.cross([0.0, 1.0, 0.0], forward)
+            over = feet[0] + np.array([0.0, 0.09, 0.0]) + 0.07 * forward + 0.02 * left_dir
+            lift = smoothstep(free_w / 0.35)[:, None]  # lift first, then move across
+            slide = smoothstep((free_w - 0.3) / 0.7)[:, None]
+            ankle = ankle + slide * (over - ankle) * np.array([1.0, 0.0, 1.0]) + lift * (
+                over - ankle) * np.array([0.0, 1.0, 0.0])
+        knee, d_up, d_low = two_bone_ik(hip, ankle, pole, *body.leg)
+        pos[J[f"{side}_knee"]] = knee
+        rest_up = body.sk.rest[J[f"{side}_knee"]] - body.sk.rest[J[f"{side}_hip"]]
+        rest_low = body.sk.rest[J[f"{side}_ankle"]] - body.sk.rest[J[f"{side}_knee"]]
+        z = np.array([0.0, 0.0, 1.0])
+        g[J[f"{side}_hip"]] = align(rest_up, z, d_up, pole)
+        g[J[f"{side}_knee"]] = align(rest_low, z, d_low, pole)
+        g[J[f"{side}_ankle"]] = yaw_matrix(feet_head[foot])
+        if side == "right" and free_w.any():  # a crossed leg's foot hangs off the shin
+            g[J["right_ankle"]] = _blend_rot(g[J["right_ankle"]], g[J["right_knee"]]
+                                             @ axis_rotation("x", np.full(n, 0.3)), free_w)
+        g[J[f"{side}_foot"]] = g[J[f"{side}_ankle"]]
+
+    # Arms: a walking swing (procedural), or IK to the thighs / the chair when sitting.
+    local_proc = _arm_swing(time, heading, moving, step_rate, tl)
+    hand_contacts: dict[str, tuple[float, float, np.ndarray, str]] = {}
+    ik_w = {s: np.zeros(n) for s in ("left", "right")}
+    contact_info: dict[str, tuple[dict, np.ndarray, np.ndarray, np.ndarray]] = {}
+    wrist_t = {}
+    hand_rot = {}
+    if sit is not None:
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            lateral = np.cross([0.0, 1.0, 0.0], forward) * sign
+            hip, knee = pos[J[f"{side}_hip"]], pos[J[f"{side}_knee"]]
+            # on top of the thigh (its front while standing), a little outside its midline
+            thigh_up = normalize(np.cross(knee - hip, np.cross([0.0, 1.0, 0.0], forward)))
+            thigh_pt = hip + 0.55 * (knee - hip) + body.thigh_radius * thigh_up - 0.01 * lateral
+            fingers = forward
+            rot_thigh = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]), fingers,
+                              np.array([0, -1.0, 0]) + 0 * fingers)
+            target = thigh_pt - (rot_thigh @ body.palm_offset[side])
+            rot = rot_thigh
+            w = sit_w.copy()
+            if side in hand_plan:
+                hold_end = seated[0] + rng.uniform(0.6, 0.9) * (seated[1] - seated[0]) if (
+                    seated is not None) else time[-1]
+                t_min = sit[0] + 0.3 * (sit[1] - sit[0])
+                plans = [_contact_run(body, side, sign, part, point, normal, pos, time, t_min,
+                                      hold_end) for part, point, normal in hand_plan[side]]
+                feasible = [p for p in plans if p is not None]
+                if not feasible:
+                    raise ValueError(f"the {side} hand cannot reach any contact target on this "
+                                     f"chair ({[c[0] for c in hand_plan[side]]})")
+                # each part gets its share however many candidate points it offers
+                parts = [p["part"] for p in feasible]
+                weights = np.array([_PART_WEIGHT[p.split("_")[1]] / parts.count(p)
+                                    for p in parts])
+                plan = feasible[rng.choice(len(feasible), p=weights / weights.sum())]
+                t_on, t_off = plan["t_on"], plan["t_off"]
+                reach_w = smoothstep((time - (t_on - 0.5)) / 0.5)
+                release_w = smoothstep((time - t_off) / 0.5)
+                c = reach_w * (1 - release_w)
+                contact_info[side] = (plan, c, target, rot)
+                target = target * (1 - c[:, None]) + plan["wrist"] * c[:, None]
+                rot = _blend_rot(rot, plan["rot"], c)
+                w = np.maximum(w, c)
+                hand_contacts[side] = (t_on, t_off, plan["point"], plan["part"])
+            ik_w[side] = w
+            wrist_t[side] = target
+            hand_rot[side] = rot
+
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        sh, el, wr = J[f"{side}_shoulder"], J[f"{side}_elbow"], J[f"{side}_wrist"]
+        if not ik_w[side].any():
+            continue
+        lateral = np.cross([0.0, 1.0, 0.0], forward) * sign
+        pole = -forward * 0.8 + lateral * 0.45 - np.array([0, 0.3, 0])
+        _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+        if side in contact_info:
+            # Second pass: lay the palm along the forearm's direction on the surface, so the
+            # wrist stays near neutral, then re-solve the arm for the moved wrist.
+            plan, c, thigh_target, thigh_rot = contact_info[side]
+            nrm = plan["normal"]
+            # biased towards the part's natural finger direction, which keeps it defined when
+            # the forearm is along the normal
+            pref = np.array([0.0, 0.0, -1.0 if plan["part"].endswith("back") else 1.0])
+            along = normalize(d_low - (d_low @ nrm)[:, None] * nrm) + 0.7 * (pref - (pref @ nrm)
+                                                                           * nrm)
+            fingers = normalize(along)
+            rot_c = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]), fingers,
+                          np.broadcast_to(-nrm, (n, 3)))
+            wrist_c = plan["point"] + 0.012 * nrm - rot_c @ body.palm_offset[side]
+            wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None]
+            hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
+            _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+        rest_up = body.sk.rest[el] - body.sk.rest[sh]
+        rest_low = body.sk.rest[wr] - body.sk.rest[el]
+        back = np.array([0.0, 0.0, -1.0])
+        g_sh = align(rest_up, back, d_up, pole)
+        g_el = align(rest_low, back, d_low, pole)
+        ik_local = {
+            sh: np.swapaxes(g[J[f"{side}_collar"]], -1, -2) @ g_sh,
+            el: np.swapaxes(g_sh, -1, -2) @ g_el,
+        }
+        for j, loc in ik_local.items():
+            local_proc[j] = _blend_rot(local_proc[j], loc, ik_w[side])
+        if side in contact_info:
+            # The wrist stays neutral (the hand follows the forearm) except while the palm is
+            # on the chair, when it turns the palm onto the surface.
+            plan, c = contact_info[side][:2]
+            wrist_c = np.swapaxes(g_el, -1, -2) @ hand_rot[side]
+            # Before the palm lands, turn towards the landing orientation, not towards what the
+            # far-away forearm would need.
+            on = min(int(np.searchsorted(time, plan["t_on"])), n - 1)
+            wrist_c[:on] = wrist_c[on]
+            local_proc[wr] = _blend_rot(local_proc[wr], wrist_c, c)
+
+    for side in ("left", "right"):
+        el, wr = J[f"{side}_elbow"], J[f"{side}_wrist"]
+        local_proc[el], local_proc[wr] = transfer_twist(
+            local_proc[el], local_proc[wr], body.sk.offset(wr))
+    local = local_from_global(g, n)
+    for j, loc in local_proc.items():
+        local[:, j] = loc
+    # Transitions (an arm swinging onto the chair) may pass outside anatomical ranges for a few
+    # frames; clamp them. Held contacts and the legs are well inside and stay exactly as solved.
+    body_aa = clamp_to_limits(Rotation.from_matrix(local[:, 1:].reshape(-1, 3, 3)).as_rotvec()
+                              .reshape(n, -1))
+    local[:, 1:] = Rotation.from_rotvec(body_aa.reshape(-1, 3)).as_matrix().reshape(n, 23, 3, 3)
+    labels = np.full(n, INTERACTION_LABEL[interaction], dtype=np.int8)
+    turn = _phase(phases, "turn")
+    if interaction == "locomotion":
+        labels[:] = 0
+    else:
+        start = turn[0] if turn else 0.0
+        labels[time < start] = 0
+        leave = _phase(phases, "leave")
+        if leave is not None:
+            labels[time > leave[0] + 0.5] = 0
+    transl = pelvis - body.rest[0]
+    return Motion(interaction=interaction, betas=betas.astype(np.float32), time=time,
+                  global_rot=go, local_rot=local, transl=transl, labels=labels,
+                  hand_contacts=hand_contacts, phases=phases)
+
+
+_PART_WEIGHT = {"armrest": 0.6, "seat": 0.3, "back": 0.1}
+
+
+def _contact_run(body: _Body, side: str, sign: float, part: str, point: np.ndarray,
+                 normal: np.ndarray, pos: dict[int, np.ndarray], time: np.ndarray, t_min: float,
+                 t_max: float) -> dict | None:
+    """The palm on ``point`` for the first stretch (>= 0.6 s, from t_min, until t_max) in which
+    the wrist target is within reach of the shoulder; None if there is no such stretch."""
+    n = len(time)
+    f_dir = np.array([0.0, 0.0, -1.0 if part.endswith("back") else 1.0])
+    rot = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]),
+                np.broadcast_to(f_dir, (n, 3)), np.broadcast_to(-normal, (n, 3)))
+    wrist = point + 0.012 * normal - rot @ body.palm_offset[side]
+    reach = np.linalg.norm(wrist - pos[J[f"{side}_shoulder"]], axis=1) < 0.99 * sum(body.arm)
+    ok = reach & (time >= t_min) & (time <= t_max)
+    if not ok.any():
+        return None
+    first = int(np.argmax(ok))
+    stop = first + int(np.argmin(ok[first:])) if not ok[first:].all() else n - 1
+    t_on, t_off = float(time[first]), float(time[stop]) - 0.35
+    if t_off - t_on < 0.6:
+        return None
+    return {"part": part, "point": point, "normal": normal, "wrist": wrist, "rot": rot,
+            "t_on": t_on, "t_off": t_off}
+
+
+def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per-frame slerp between rotation matrices a and b (T,3,3) with weights w (T,)."""
+    ra, rb = Rotation.from_matrix(np.broadcast_to(a, (len(w), 3, 3))), Rotation.from_matrix(
+        np.broadcast_to(b, (len(w), 3, 3)))
+    delta = (ra.inv() * rb).as_rotvec()
+    return (ra * Rotation.from_rotvec(delta * np.clip(w, 0, 1)[:, None])).as_matrix()
+
+
+def _arm_swing(time: np.ndarray, heading: np.ndarray, moving: np.ndarray, step_rate: float,
+               tl: Timeline) -> dict[int, np.ndarray]:
+    """Local rotations of shoulders, elbows and wrists for relaxed arms swinging against the
+    legs: each arm swings forward as the opposite foot does."""
+    del heading, tl
+    n = len(time)
+    swing = np.deg2rad(18) * moving * np.sin(np.pi * step_rate * time)
+    out = {}
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        s = swing if side == "left" else -swing
+        down = axis_rotation("z", np.full(n, -sign * np.deg2rad(72)))
+        out[J[f"{side}_shoulder"]] = axis_rotation("x", -s) @ down
+        out[J[f"{side}_elbow"]] = axis_rotation("y", np.full(n, -sign * np.deg2rad(15))
+                                                - sign * np.maximum(0, s) * 0.5)
+        out[J[f"{side}_wrist"]] = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    return out
+
+
+def motion_to_arrays(motion: Motion, times: np.ndarray) -> dict[str, np.ndarray]:
+    """Schema-shaped arrays at ``times``: global_orient (N,3), body_pose (N,69), transl (N,3),
+    labels (N,), in the chair frame."""
+    go, bp, tr, lab = motion.sample(times)
+    return {"global_orient": go, "body_pose": bp, "transl": tr, "labels": lab}
+
+
+__all__ = [
+    "INTERACTION_LABEL", "INTERACTION_MIX", "Motion", "MotionConfig", "SeatGeometry",
+    "generate_motion", "matrix_to_axis_angle", "motion_to_arrays", "sample_interaction",
+]
