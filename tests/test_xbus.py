@@ -338,8 +338,10 @@ def test_garbage_between_messages_never_loses_a_message(n: int, seed: int, gaps:
     items: list[bytes] = []
     for k in range(n):
         if mixed and k % 3 == 2:
-            items.append(encode_message(int(rng.integers(0, 256)),
-                                        rng.bytes(int(rng.integers(0, 300)))))
+            # any MID but MTData2's: random bytes there are a malformed sample, not a message
+            mid = int(rng.integers(0, 255))
+            mid += mid >= MID.MTData2
+            items.append(encode_message(mid, rng.bytes(int(rng.integers(0, 300)))))
         else:
             items.append(encode_mtdata2(_sample(rng, 0x00B40000 + k, k),
                                         precision="float64" if k % 2 else "float32"))
