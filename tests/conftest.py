@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
+from hypothesis import settings
 
 from couch.body import CONTACT_NAMES, load_body_model, sitting_pose, standing_pose
 from couch.geometry import make_transform
 from couch.schema import ProcessedSession
+
+# CI explores a fixed set of examples (a red CI must be reproducible); developers get fresh ones.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 
 @pytest.fixture(scope="session")
