@@ -15,6 +15,7 @@ are 0 (locomotion) while walking and the sequence's type from the turn at the ch
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 import torch
@@ -337,11 +338,13 @@ def sample_interaction(rng: np.random.Generator) -> str:
 def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generator, *,
                     interaction: str | None = None, duration: float | None = None,
                     betas: np.ndarray | None = None, config: MotionConfig | None = None,
-                    chair_mesh: tuple[np.ndarray, np.ndarray] | None = None) -> Motion:
+                    chair_mesh: tuple[np.ndarray, np.ndarray] | None = None,
+                    collision_model: BodyModel | None = None) -> Motion:
     """One human-chair sequence in the chair frame.
 
     Args:
-        model: body model (its rest skeleton sets bone lengths; use the coarse one for speed).
+        model: the body model whose skeleton the poses are solved for (feet and hands reach
+            their targets exactly with its bone lengths).
         seat: the chair's geometry and hand targets.
         interaction: one of :data:`INTERACTION_LABEL` (random with the COUCH mix when None).
         duration: total seconds wanted (the seated phase absorbs the slack; the start distance
@@ -349,6 +352,7 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         betas: (10,) subject shape (random N(0, config.beta_std) when None).
         chair_mesh: the chair's watertight (vertices, faces) in the chair frame; when given, the
             body is settled out of any penetration after the targets are solved.
+        collision_model: the (coarse, faster) body model used for that check; default ``model``.
     """
     cfg = config or MotionConfig()
     interaction = interaction or sample_interaction(rng)
@@ -370,12 +374,14 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         pelvis_z = seat.back_front_z + body.buttock_back + rng.uniform(0.02, 0.06)
     else:
         pelvis_z = seat_c[2] - 0.05
+    # On a deep seat people sit forward enough for the knees to clear its front edge.
+    pelvis_z = max(pelvis_z, seat.seat_front_z - 0.97 * body.leg[0] + 0.07)
     pelvis_z = min(pelvis_z, seat.seat_front_z - 0.12)
     seated_pelvis = np.array([seat_c[0], seat.seat_height + body.seat_drop, pelvis_z])
     knee_z = seated_pelvis[2] + body.leg[0] * 0.97
     # Feet under or a little before the knees, and far enough from the seat's front edge that the
     # calves clear it while turning and standing (a calf reaches ~10 cm behind the ankle).
-    feet_z = max(knee_z + rng.uniform(-0.02, 0.08), seat.seat_front_z + 0.15)
+    feet_z = max(knee_z + rng.uniform(0.02, 0.1), seat.seat_front_z + 0.15)
     feet_apart = body.hip_half_width + rng.uniform(0.0, 0.06)
     sit_feet = (Footprint(np.array([seat_c[0] + feet_apart, body.ankle_h, feet_z]), 0.0),
                 Footprint(np.array([seat_c[0] - feet_apart, body.ankle_h, feet_z]), 0.0))
@@ -459,22 +465,35 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
             seated_pelvis, walk_h, stand_h, speed, step_len, int(rng.integers(2**31)))
     offset = np.zeros((len(time), 3))
     motion = _solve(*args, offset)
+    # Re-solves keep the palm targets and their timing; only the body settles.
+    fixed = {side: (part, point, None, t_on, t_off) for side, (t_on, t_off, point, part)
+             in motion.hand_contacts.items()}
+    for side, (part, point, _, t_on, t_off) in fixed.items():
+        normal = next(nrm for p, pt, nrm in hand_plan[side] if p == part and np.allclose(
+            pt, point))
+        fixed[side] = (part, point, normal, t_on, t_off)
     if chair_mesh is not None and sit:
         # Settle the body out of the chair: push the pelvis along the surface normal at the
         # deepest penetration, re-solve the limbs, repeat.
         for _ in range(4):
-            push = _penetration_push(model, motion, chair_mesh, phases)
+            push = _penetration_push(collision_model or model, motion, chair_mesh, seat, phases)
             if not push.any():
                 break
             offset += push
-            motion = _solve(*args, offset)
+            motion = _solve(*args, offset, fixed or None)
     return motion
 
 
 def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
-                      phases: list[tuple[str, float, float]], tol: float = 0.004) -> np.ndarray:
-    """(T,3) pelvis displacement that would lift the body out of the chair, from the deepest
-    penetrating vertex per frame (sampled at 15 Hz over the sit/seated/stand phases)."""
+                      seat: SeatGeometry, phases: list[tuple[str, float, float]],
+                      tol: float = 0.004) -> np.ndarray:
+    """(T,3) pelvis displacement that lifts the body out of the seat and forward off the
+    backrest (sampled at 15 Hz over the turn/sit/seated/stand phases).
+
+    Each penetrating vertex is pushed out along a ray, up for the seat region and forward for
+    the backrest; the ray's exit distance is how far it must move (the nearest-surface normal
+    of a thin seat can point down, through the bottom).
+    """
     import open3d as o3d
 
     spans = [(a, b) for name, a, b in phases if name in ("turn", "sit", "seated", "stand")]
@@ -487,18 +506,28 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(chair_mesh[0].astype(np.float32)),
                         o3d.core.Tensor(chair_mesh[1].astype(np.uint32)))
-    pts = o3d.core.Tensor(v.reshape(-1, 3).astype(np.float32))
-    sd = scene.compute_signed_distance(pts).numpy().reshape(v.shape[:2])
-    worst = sd.argmin(axis=1)
-    depth = -sd[np.arange(len(ts)), worst]
-    if not (depth > tol).any():
+    flat = v.reshape(-1, 3).astype(np.float32)
+    inside = scene.compute_occupancy(o3d.core.Tensor(flat)).numpy().astype(bool)
+    push_s = np.zeros((len(ts), 3))
+    if not inside.any():
         return np.zeros((len(motion.time), 3))
-    deep = o3d.core.Tensor(v[np.arange(len(ts)), worst].astype(np.float32))
-    normal = scene.compute_closest_points(deep)["primitive_normals"].numpy().astype(float)
-    push_s = np.where((depth > tol)[:, None], (depth + tol)[:, None] * normal, 0.0)
+    pts = flat[inside]
+    frame = np.repeat(np.arange(len(ts)), v.shape[1])[inside]
+    upward = pts[:, 1] < seat.seat_height + 0.12
+    dirs = np.where(upward[:, None], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([pts, dirs], 1)))["t_hit"].numpy()
+    exit_dist = np.where(np.isfinite(hit), hit, 0.0) + tol
+    for axis, sel in ((1, upward), (2, ~upward)):
+        need = np.zeros(len(ts))
+        np.maximum.at(need, frame[sel], exit_dist[sel])
+        push_s[:, axis] = need
     push = np.stack([np.interp(motion.time, ts, push_s[:, k], left=0, right=0)
                      for k in range(3)], -1)
-    return 1.5 * gaussian_filter1d(push, 0.1 * DENSE_HZ, axis=0)
+    # widen, then smooth, so the correction ramps in and out instead of popping
+    from scipy.ndimage import maximum_filter1d
+
+    push = maximum_filter1d(push, int(0.2 * DENSE_HZ), axis=0)
+    return gaussian_filter1d(push, 0.08 * DENSE_HZ, axis=0)
 
 
 def _phase(phases: list[tuple[str, float, float]], name: str) -> tuple[float, float] | None:
@@ -510,7 +539,7 @@ def _phase(phases: list[tuple[str, float, float]], name: str) -> tuple[float, fl
 
 def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timeline,
            time: np.ndarray, phases, hand_plan, pre_sit, seated_pelvis, walk_h, stand_h, speed,
-           step_len, seed: int, offset: np.ndarray) -> Motion:
+           step_len, seed: int, offset: np.ndarray, fixed: dict | None = None) -> Motion:
     rng = np.random.default_rng(seed)
     n = len(time)
     feet, feet_head = tl.feet(time, clearance=0.07)
@@ -530,6 +559,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
     pelvis[:, 1] = stand_h + moving * (walk_h - stand_h) + bob
     pitch = np.deg2rad(4.0) * moving  # slight forward lean while walking
     spine = np.zeros(n)
+    roll = np.zeros(n)
 
     # Sitting down and standing up: pelvis moves back and down while the torso leans forward.
     sit_w = np.zeros(n)
@@ -550,8 +580,13 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             1 - smoothstep(np.clip((time - stand[1]) * 4 + 1, 0, 1)))
         pelvis = pelvis * (1 - w[:, None]) + target * w[:, None] + offset
         lean = np.sin(np.pi * np.clip(sit_w, 0, 1)) ** 1.5
-        pitch = pitch * (1 - w) + np.deg2rad(28) * lean
-        spine = spine + np.deg2rad(22) * lean
+        # Reaching for the chair while sitting down means bending further forward, and to the
+        # side of a single supporting hand.
+        reaching = interaction in ("right_hand", "left_hand", "both_hands")
+        pitch = pitch * (1 - w) + np.deg2rad(32 if reaching else 28) * lean
+        spine = spine + np.deg2rad(25 if reaching else 22) * lean
+        side_sign = {"right_hand": 1.0, "left_hand": -1.0}.get(interaction, 0.0)
+        roll = roll + side_sign * np.deg2rad(12) * lean
         seat_heading = float(np.interp(sit[0], time, feet_head.mean(0)))
         heading = heading * (1 - w) + w * seat_heading
 
@@ -570,17 +605,30 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             pelvis[:, 2] += 0.03 * free_w
 
     go = yaw_matrix(heading) @ axis_rotation("x", pitch)
-    g: dict[int, np.ndarray] = {0: go}
-    for jn in ("spine1", "spine2", "spine3"):
-        g[J[jn]] = g[J["pelvis"] if jn == "spine1" else J[f"spine{int(jn[-1]) - 1}"]] @ (
-            axis_rotation("x", spine / 3))
+    torso = [axis_rotation("x", spine / 3) @ axis_rotation("z", roll / 3)] * 3
     head_fix = -(pitch + spine) * 0.45
-    g[J["neck"]] = g[J["spine3"]] @ axis_rotation("x", head_fix)
-    g[J["head"]] = g[J["neck"]] @ axis_rotation("x", head_fix)
-    for side in ("left", "right"):
-        g[J[f"{side}_collar"]] = g[J["spine3"]]
-    pos = body.sk.forward(pelvis, g, [J["left_hip"], J["right_hip"], J["left_shoulder"],
-                                      J["right_shoulder"]])
+
+    def upper_body(extra: np.ndarray) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Global rotations and positions with an extra world rotation (T,3,3) of the torso
+        about spine1, the bend a person adds to reach the chair."""
+        g = {0: go}
+        g[J["spine1"]] = extra @ go @ torso[0]
+        g[J["spine2"]] = g[J["spine1"]] @ torso[1]
+        g[J["spine3"]] = g[J["spine2"]] @ torso[2]
+        g[J["neck"]] = g[J["spine3"]] @ axis_rotation("x", head_fix)
+        g[J["head"]] = g[J["neck"]] @ axis_rotation("x", head_fix)
+        for side in ("left", "right"):
+            g[J[f"{side}_collar"]] = g[J["spine3"]]
+        pos = body.sk.forward(pelvis, g, [J["left_hip"], J["right_hip"], J["left_shoulder"],
+                                          J["right_shoulder"], J["spine1"]])
+        return g, pos
+
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+    g, pos = upper_body(eye)
+    contact_plans: dict[str, tuple[dict, np.ndarray]] = {}
+    if hand_plan and sit is not None:
+        contact_plans, g, pos = _plan_contacts(body, hand_plan, time, sit, seated, stand, rng,
+                                               upper_body, seated_pelvis, fixed)
 
     # Legs: ankles on their footprints; crossing the legs lifts the right ankle over the left knee.
     forward = np.stack([np.sin(heading), np.zeros(n), np.cos(heading)], -1)
@@ -631,30 +679,13 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             target = thigh_pt - (rot_thigh @ body.palm_offset[side])
             rot = rot_thigh
             w = sit_w.copy()
-            if side in hand_plan:
-                hold_end = seated[0] + rng.uniform(0.6, 0.9) * (seated[1] - seated[0]) if (
-                    seated is not None) else time[-1]
-                t_min = sit[0] + 0.3 * (sit[1] - sit[0])
-                plans = [_contact_run(body, side, sign, part, point, normal, pos, time, t_min,
-                                      hold_end) for part, point, normal in hand_plan[side]]
-                feasible = [p for p in plans if p is not None]
-                if not feasible:
-                    raise ValueError(f"the {side} hand cannot reach any contact target on this "
-                                     f"chair ({[c[0] for c in hand_plan[side]]})")
-                # each part gets its share however many candidate points it offers
-                parts = [p["part"] for p in feasible]
-                weights = np.array([_PART_WEIGHT[p.split("_")[1]] / parts.count(p)
-                                    for p in parts])
-                plan = feasible[rng.choice(len(feasible), p=weights / weights.sum())]
-                t_on, t_off = plan["t_on"], plan["t_off"]
-                reach_w = smoothstep((time - (t_on - 0.5)) / 0.5)
-                release_w = smoothstep((time - t_off) / 0.5)
-                c = reach_w * (1 - release_w)
+            if side in contact_plans:
+                plan, c = contact_plans[side]
                 contact_info[side] = (plan, c, target, rot)
                 target = target * (1 - c[:, None]) + plan["wrist"] * c[:, None]
                 rot = _blend_rot(rot, plan["rot"], c)
                 w = np.maximum(w, c)
-                hand_contacts[side] = (t_on, t_off, plan["point"], plan["part"])
+                hand_contacts[side] = (plan["t_on"], plan["t_off"], plan["point"], plan["part"])
             ik_w[side] = w
             wrist_t[side] = target
             hand_rot[side] = rot
@@ -673,7 +704,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             nrm = plan["normal"]
             # biased towards the part's natural finger direction, which keeps it defined when
             # the forearm is along the normal
-            pref = np.array([0.0, 0.0, -1.0 if plan["part"].endswith("back") else 1.0])
+            pref = plan["fingers"]
             along = normalize(d_low - (d_low @ nrm)[:, None] * nrm) + 0.7 * (pref - (pref @ nrm)
                                                                            * nrm)
             fingers = normalize(along)
@@ -736,27 +767,131 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
 _PART_WEIGHT = {"armrest": 0.6, "seat": 0.3, "back": 0.1}
 
 
-def _contact_run(body: _Body, side: str, sign: float, part: str, point: np.ndarray,
-                 normal: np.ndarray, pos: dict[int, np.ndarray], time: np.ndarray, t_min: float,
-                 t_max: float) -> dict | None:
-    """The palm on ``point`` for the first stretch (>= 0.6 s, from t_min, until t_max) in which
-    the wrist target is within reach of the shoulder; None if there is no such stretch."""
-    n = len(time)
-    f_dir = np.array([0.0, 0.0, -1.0 if part.endswith("back") else 1.0])
+def _contact_target(body: _Body, side: str, part: str, point: np.ndarray, normal: np.ndarray,
+                    n: int, hips: np.ndarray) -> dict:
+    """Wrist position (n,3) and hand rotation (n,3,3) that put the palm on ``point``, fingers
+    pointing away from the sitter's hips (``hips`` (3,)), as a supporting hand does."""
+    sign = 1.0 if side == "left" else -1.0
+    away = (point - hips) * np.array([1.0, 0.0, 1.0])
+    f_dir = normalize(away) if np.linalg.norm(away) > 0.05 else np.array(
+        [0.0, 0.0, -1.0 if part.endswith("back") else 1.0])
     rot = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]),
                 np.broadcast_to(f_dir, (n, 3)), np.broadcast_to(-normal, (n, 3)))
     wrist = point + 0.012 * normal - rot @ body.palm_offset[side]
-    reach = np.linalg.norm(wrist - pos[J[f"{side}_shoulder"]], axis=1) < 0.99 * sum(body.arm)
-    ok = reach & (time >= t_min) & (time <= t_max)
-    if not ok.any():
-        return None
-    first = int(np.argmax(ok))
-    stop = first + int(np.argmin(ok[first:])) if not ok[first:].all() else n - 1
-    t_on, t_off = float(time[first]), float(time[stop]) - 0.35
-    if t_off - t_on < 0.6:
-        return None
     return {"part": part, "point": point, "normal": normal, "wrist": wrist, "rot": rot,
-            "t_on": t_on, "t_off": t_off}
+            "fingers": f_dir}
+
+
+def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray, np.ndarray]]],
+                   time: np.ndarray, sit: tuple[float, float], seated: tuple[float, float] | None,
+                   stand: tuple[float, float] | None, rng: np.random.Generator, upper_body,
+                   hips: np.ndarray, fixed: dict[str, tuple] | None = None
+                   ) -> tuple[dict[str, tuple[dict, np.ndarray]], dict, dict]:
+    """Choose a palm target per hand and bend the torso so the hands reach them.
+
+    The palm lands during the second half of sitting down and stays until part-way through the
+    seated phase. Where a target is beyond arm's reach the torso rotates about spine1 (leaning
+    forward or sideways, as people do) by the least angle that brings the shoulders within
+    reach; a choice that still cannot be reached is replaced by another candidate.
+    Returns side → (target dict with t_on/t_off, contact weight (T,)), and the bent upper
+    body's global rotations and positions.
+    """
+    n = len(time)
+    end = stand[0] if stand is not None else time[-1]
+    _, pos0 = upper_body(np.broadcast_to(np.eye(3), (n, 3, 3)))
+    arm = sum(body.arm)
+    slack = 0.1  # what a moderate extra bend of the torso can make up
+    t_first = sit[0] + 0.35 * (sit[1] - sit[0])
+    windows: dict[str, list[tuple[float, float] | None]] = {}
+    for side, candidates in hand_plan.items():
+        shoulder = pos0[J[f"{side}_shoulder"]]
+        wins = []
+        for part, point, _normal in candidates:
+            if part.endswith("seat") and abs(point[0] - hips[0]) < (
+                    body.hip_half_width + body.thigh_radius + 0.03) and point[2] < hips[2] + (
+                    body.leg[0]):
+                wins.append(None)  # where the thigh lands
+                continue
+            near = (np.linalg.norm(point - shoulder, axis=1) < 0.9 * arm + slack) & (
+                time >= t_first) & (time <= end)
+            if not near.any():
+                wins.append(None)
+                continue
+            first = int(np.argmax(near))
+            stop = first + int(np.argmin(near[first:])) if not near[first:].all() else n - 1
+            wins.append((float(time[first]), float(time[stop])) if time[stop] - time[first]
+                        > 0.6 else None)
+        windows[side] = wins
+    for _attempt in range(12 if fixed is None else 1):
+        plans: dict[str, tuple[dict, np.ndarray]] = {}
+        for side, candidates in hand_plan.items():
+            if fixed is not None:
+                part, point, normal, t_on, t_off = fixed[side]
+                plan = _contact_target(body, side, part, point, normal, n, hips)
+                plan["t_on"], plan["t_off"] = t_on, t_off
+                c = smoothstep((time - (t_on - 0.5)) / 0.5) * (
+                    1 - smoothstep((time - t_off) / 0.5))
+                plans[side] = (plan, c)
+                continue
+            scores = np.array([0.0 if w is None else _PART_WEIGHT[c[0].split("_")[1]]
+                               for c, w in zip(candidates, windows[side], strict=True)])
+            if scores.sum() <= 0:
+                raise ValueError(f"no {side}-hand palm target on this chair is within reach")
+            k = rng.choice(len(candidates), p=scores / scores.sum())
+            part, point, normal = candidates[k]
+            win_on, win_off = windows[side][k]
+            plan = _contact_target(body, side, part, point, normal, n, hips)
+            plan["t_on"] = float(win_on + rng.uniform(0.0, 0.3) * min(0.6, win_off - win_on))
+            if part.endswith("seat"):
+                # a hand on the seat supports the descent and lets go as the hips land
+                plan["t_off"] = float(min(win_off, sit[0] + rng.uniform(0.92, 1.0) * (
+                    sit[1] - sit[0])))
+            else:
+                hold = (seated[0] + rng.uniform(0.3, 0.7) * (seated[1] - seated[0])
+                        if seated is not None else end)
+                plan["t_off"] = float(min(win_off, hold))
+            plan["t_off"] = max(plan["t_off"], plan["t_on"] + 0.4)
+            c = smoothstep((time - (plan["t_on"] - 0.5)) / 0.5) * (
+                1 - smoothstep((time - plan["t_off"]) / 0.5))
+            plans[side] = (plan, c)
+        extra = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+        reach = 0.94 * sum(body.arm)
+        for _ in range(3):
+            for side, (plan, c) in plans.items():
+                _, pos = upper_body(extra)
+                pivot = pos[J["spine1"]]
+                lever = pos[J[f"{side}_shoulder"]] - pivot
+                radius = np.linalg.norm(lever, axis=1, keepdims=True)
+                u0 = lever / radius
+                u1 = normalize(plan["wrist"] - pivot)
+                # smallest turn of the shoulder along the great circle towards the target
+                # that brings it within reach (distance falls monotonically along it)
+                full = Rotation.from_rotvec(normalize(np.cross(u0, u1)) * np.arccos(
+                    np.clip((u0 * u1).sum(1), -1, 1))[:, None])
+                frac = np.ones(n)
+                for f in np.linspace(0.0, 1.0, 21)[::-1]:
+                    step = Rotation.from_rotvec(full.as_rotvec() * f)
+                    shoulder = pivot + radius * step.apply(u0)
+                    ok = np.linalg.norm(plan["wrist"] - shoulder, axis=1) < reach
+                    frac = np.where(ok, f, frac)
+                frac = np.where(np.linalg.norm(plan["wrist"] - pivot - lever, axis=1) < reach,
+                                0.0, frac) * c
+                turn = Rotation.from_rotvec(full.as_rotvec() * frac[:, None]).as_matrix()
+                extra = turn @ extra
+        g, pos = upper_body(extra)
+        bend = np.degrees(Rotation.from_matrix(extra).magnitude())
+        reach_ok = all(
+            np.all(np.linalg.norm(plan["wrist"] - pos[J[f"{side}_shoulder"]], axis=1)[c > 0.95]
+                   < 0.995 * sum(body.arm)) for side, (plan, c) in plans.items())
+        if os.environ.get("COUCH_DEBUG_CONTACTS"):
+            for side, (plan, c) in plans.items():
+                d = np.linalg.norm(plan["wrist"] - pos[J[f"{side}_shoulder"]], axis=1)
+                print(side, plan["part"], plan["point"].round(2), "max dist c>.5",
+                      d[c > 0.95].max().round(3), "arm", round(sum(body.arm), 3),
+                      "bend", bend.max().round(1))
+        if (reach_ok and bend.max() < 40) or fixed is not None:
+            return plans, g, pos
+    raise ValueError(f"no reachable palm targets for {sorted(hand_plan)} on this chair")
 
 
 def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
