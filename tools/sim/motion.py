@@ -22,7 +22,7 @@ import torch
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
-from couch.body import JOINT_INDEX, BodyModel
+from couch.body import JOINT_INDEX, BodyModel, sitting_pose
 from couch.body.limits import clamp_to_limits
 from couch.rotations import matrix_to_axis_angle
 from couch.tools.sim.ik import (
@@ -75,6 +75,7 @@ class MotionConfig:
     seated_duration: tuple[float, float] = (2.0, 4.0)  # s when no total duration is asked
     stand_and_leave: float = 0.5  # probability of standing up and walking away
     beta_std: float = 1.0
+    max_penetration: float = 0.018  # m; deeper sequences are rejected (MotionRejected)
 
 
 @dataclasses.dataclass
@@ -303,9 +304,15 @@ class _Body:
             J["left_elbow"], J["left_wrist"])
         self.hip_below_pelvis = float(self.rest[0, 1] - self.rest[J["left_hip"], 1])
         self.hip_half_width = float(abs(self.rest[J["left_hip"], 0]))
-        pelvis = v[model.contact_vertices["pelvis"]]
-        # Seated, the buttocks sit below and behind the pelvis joint.
-        self.seat_drop = float(self.rest[0, 1] - pelvis[:, 1].min()) * 0.55 + 0.03
+        # Seated (thighs level), how far the pelvis joint is above what rests on the seat: the
+        # lowest point of the buttocks and the back of the thighs near the hips.
+        with torch.no_grad():
+            seated = model(betas=torch.as_tensor(betas[None], dtype=model.dtype),
+                           body_pose=torch.as_tensor(sitting_pose()[None], dtype=model.dtype))
+        sv = seated.vertices[0].double().numpy()
+        sj = seated.joints[0].double().numpy()
+        near_hips = sv[:, 2] < sj[J["left_hip"], 2] + 0.15
+        self.seat_drop = float(sj[0, 1] - sv[near_hips, 1].min())
         self.buttock_back = float(self.rest[0, 2] - v[:, 2].min())
         self.thigh_radius = 0.075
         # Palm centre relative to the wrist in the rest (T-pose: palms down) frame, per side.
@@ -342,6 +349,9 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
                     collision_model: BodyModel | None = None) -> Motion:
     """One human-chair sequence in the chair frame.
 
+    Raises ValueError (no reachable hand target) or :class:`MotionRejected` (the settled body
+    still penetrates the chair) when this draw cannot be done; callers draw again.
+
     Args:
         model: the body model whose skeleton the poses are solved for (feet and hands reach
             their targets exactly with its bone lengths).
@@ -374,11 +384,15 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         pelvis_z = seat.back_front_z + body.buttock_back + rng.uniform(0.02, 0.06)
     else:
         pelvis_z = seat_c[2] - 0.05
-    # On a deep seat people sit forward enough for the knees to clear its front edge.
-    pelvis_z = max(pelvis_z, seat.seat_front_z - 0.97 * body.leg[0] + 0.07)
+    # Sit forward enough for the knees to clear the seat's front edge: with the shin upright
+    # the knee is at ankle height + shin length, so the thigh slopes and reaches less far.
+    hip_y = seat.seat_height + body.seat_drop - body.hip_below_pelvis
+    rise = body.ankle_h + body.leg[1] - hip_y
+    reach_z = np.sqrt(max(body.leg[0] ** 2 - rise**2, 0.2**2))
+    pelvis_z = max(pelvis_z, seat.seat_front_z + 0.09 - reach_z)
     pelvis_z = min(pelvis_z, seat.seat_front_z - 0.12)
     seated_pelvis = np.array([seat_c[0], seat.seat_height + body.seat_drop, pelvis_z])
-    knee_z = seated_pelvis[2] + body.leg[0] * 0.97
+    knee_z = seated_pelvis[2] + reach_z
     # Feet under or a little before the knees, and far enough from the seat's front edge that the
     # calves clear it while turning and standing (a calf reaches ~10 cm behind the ankle).
     feet_z = max(knee_z + rng.uniform(0.02, 0.1), seat.seat_front_z + 0.15)
@@ -479,9 +493,30 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
             push = _penetration_push(collision_model or model, motion, chair_mesh, seat, phases)
             if not push.any():
                 break
-            offset += push
+            offset = np.clip(offset + push, -0.1, 0.1)
             motion = _solve(*args, offset, fixed or None)
+        depth = max_penetration(collision_model or model, motion, chair_mesh)
+        if depth > cfg.max_penetration:
+            raise MotionRejected(f"the body passes {100 * depth:.1f} cm into the chair "
+                                 f"(limit {100 * cfg.max_penetration:.1f} cm)")
     return motion
+
+
+class MotionRejected(ValueError):
+    """A generated sequence failed a plausibility check (the caller may draw another)."""
+
+
+def max_penetration(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
+                    hz: float = 15.0) -> float:
+    """Deepest penetration (m) of the body into the chair over the sequence, sampled at ``hz``."""
+    from couch.tools.sim.quality import penetration_depth
+
+    ts = np.arange(0.0, motion.duration, 1.0 / hz)
+    go, bp, tr, _ = motion.sample(ts)
+    with torch.no_grad():
+        v = model(betas=motion.betas[None], global_orient=go, body_pose=bp,
+                  transl=tr).vertices.numpy()
+    return float(penetration_depth(v, *chair_mesh).max())
 
 
 def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
@@ -509,11 +544,12 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     flat = v.reshape(-1, 3).astype(np.float32)
     inside = scene.compute_occupancy(o3d.core.Tensor(flat)).numpy().astype(bool)
     push_s = np.zeros((len(ts), 3))
-    if not inside.any():
-        return np.zeros((len(motion.time), 3))
     pts = flat[inside]
     frame = np.repeat(np.arange(len(ts)), v.shape[1])[inside]
-    upward = pts[:, 1] < seat.seat_height + 0.12
+    # Into the seat from above: lift. Into the backrest, or the seat's front face from in front
+    # (calves, knees): forward.
+    upward = (pts[:, 1] > seat.seat_height - 0.08) & (pts[:, 1] < seat.seat_height + 0.12) & (
+        pts[:, 2] < seat.seat_front_z - 0.03)
     dirs = np.where(upward[:, None], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]).astype(np.float32)
     hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([pts, dirs], 1)))["t_hit"].numpy()
     exit_dist = np.where(np.isfinite(hit), hit, 0.0) + tol
@@ -521,13 +557,32 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
         need = np.zeros(len(ts))
         np.maximum.at(need, frame[sel], exit_dist[sel])
         push_s[:, axis] = need
+    # Seated, the body rests on the seat: lower it onto the seat where it floats above.
+    seated = [(a, b) for name, a, b in phases if name == "seated"]
+    if seated:
+        a, b = seated[0]
+        on_seat = (ts >= a) & (ts <= b)
+        lower = np.isin(model.weights.argmax(1).numpy(),
+                        [J["pelvis"], J["left_hip"], J["right_hip"]])
+        under = v[on_seat][:, lower].reshape(-1, 3).astype(np.float32)
+        if len(under):
+            down = np.tile(np.float32([0.0, -1.0, 0.0]), (len(under), 1))
+            gap = scene.cast_rays(o3d.core.Tensor(np.concatenate([under, down], 1)))[
+                "t_hit"].numpy().reshape(int(on_seat.sum()), -1)
+            gap = np.where(np.isfinite(gap), gap, np.inf).min(axis=1)
+            sink = np.where(np.isfinite(gap) & (gap > tol), gap - 0.002, 0.0)
+            push_s[on_seat, 1] -= np.where(push_s[on_seat, 1] > 0, 0.0, sink)
     push = np.stack([np.interp(motion.time, ts, push_s[:, k], left=0, right=0)
                      for k in range(3)], -1)
     # widen, then smooth, so the correction ramps in and out instead of popping
     from scipy.ndimage import maximum_filter1d
 
-    push = maximum_filter1d(push, int(0.2 * DENSE_HZ), axis=0)
-    return gaussian_filter1d(push, 0.08 * DENSE_HZ, axis=0)
+    # keep the larger of lifting and lowering, not their average
+    up = maximum_filter1d(np.maximum(push, 0), int(0.2 * DENSE_HZ), axis=0)
+    dn = -maximum_filter1d(np.maximum(-push, 0), int(0.2 * DENSE_HZ), axis=0)
+    push = np.where(up > 0, up, dn)
+    out = gaussian_filter1d(push, 0.08 * DENSE_HZ, axis=0)
+    return np.where(np.abs(out) > 1e-4, out, 0.0)
 
 
 def _phase(phases: list[tuple[str, float, float]], name: str) -> tuple[float, float] | None:
@@ -682,7 +737,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             if side in contact_plans:
                 plan, c = contact_plans[side]
                 contact_info[side] = (plan, c, target, rot)
-                target = target * (1 - c[:, None]) + plan["wrist"] * c[:, None]
+                target = target * (1 - c[:, None]) + plan["wrist"] * c[:, None] + _hand_arc(c)
                 rot = _blend_rot(rot, plan["rot"], c)
                 w = np.maximum(w, c)
                 hand_contacts[side] = (plan["t_on"], plan["t_off"], plan["point"], plan["part"])
@@ -711,7 +766,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             rot_c = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]), fingers,
                           np.broadcast_to(-nrm, (n, 3)))
             wrist_c = plan["point"] + 0.012 * nrm - rot_c @ body.palm_offset[side]
-            wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None]
+            wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None] + _hand_arc(c)
             hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
             _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
         rest_up = body.sk.rest[el] - body.sk.rest[sh]
@@ -807,20 +862,20 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
         shoulder = pos0[J[f"{side}_shoulder"]]
         wins = []
         for part, point, _normal in candidates:
-            if part.endswith("seat") and abs(point[0] - hips[0]) < (
-                    body.hip_half_width + body.thigh_radius + 0.03) and point[2] < hips[2] + (
-                    body.leg[0]):
-                wins.append(None)  # where the thigh lands
-                continue
+            under_thigh = part.endswith("seat") and abs(point[0] - hips[0]) < (
+                body.hip_half_width + body.thigh_radius + 0.03) and point[2] < hips[2] + (
+                body.leg[0])
+            # a palm where the thigh lands must be gone before the hips come down
+            last = sit[0] + 0.65 * (sit[1] - sit[0]) if under_thigh else end
             near = (np.linalg.norm(point - shoulder, axis=1) < 0.9 * arm + slack) & (
-                time >= t_first) & (time <= end)
+                time >= t_first) & (time <= last)
             if not near.any():
                 wins.append(None)
                 continue
             first = int(np.argmax(near))
             stop = first + int(np.argmin(near[first:])) if not near[first:].all() else n - 1
             wins.append((float(time[first]), float(time[stop])) if time[stop] - time[first]
-                        > 0.6 else None)
+                        > (0.3 if under_thigh else 0.6) else None)
         windows[side] = wins
     for _attempt in range(12 if fixed is None else 1):
         plans: dict[str, tuple[dict, np.ndarray]] = {}
@@ -841,7 +896,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
             part, point, normal = candidates[k]
             win_on, win_off = windows[side][k]
             plan = _contact_target(body, side, part, point, normal, n, hips)
-            plan["t_on"] = float(win_on + rng.uniform(0.0, 0.3) * min(0.6, win_off - win_on))
+            plan["t_on"] = float(win_on + rng.uniform(0.0, 0.3) * min(0.6, win_off - win_on - 0.25))
             if part.endswith("seat"):
                 # a hand on the seat supports the descent and lets go as the hips land
                 plan["t_off"] = float(min(win_off, sit[0] + rng.uniform(0.92, 1.0) * (
@@ -850,7 +905,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 hold = (seated[0] + rng.uniform(0.3, 0.7) * (seated[1] - seated[0])
                         if seated is not None else end)
                 plan["t_off"] = float(min(win_off, hold))
-            plan["t_off"] = max(plan["t_off"], plan["t_on"] + 0.4)
+            plan["t_off"] = max(plan["t_off"], plan["t_on"] + 0.25)
             c = smoothstep((time - (plan["t_on"] - 0.5)) / 0.5) * (
                 1 - smoothstep((time - plan["t_off"]) / 0.5))
             plans[side] = (plan, c)
@@ -892,6 +947,12 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
         if (reach_ok and bend.max() < 40) or fixed is not None:
             return plans, g, pos
     raise ValueError(f"no reachable palm targets for {sorted(hand_plan)} on this chair")
+
+
+def _hand_arc(c: np.ndarray, height: float = 0.12) -> np.ndarray:
+    """(T,3) upward detour of a hand moving onto or off the chair (largest half-way), so it
+    passes over armrests and backrest edges instead of through them."""
+    return np.stack([np.zeros_like(c), 4 * height * c * (1 - c), np.zeros_like(c)], -1)
 
 
 def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -1,0 +1,272 @@
+"""``couch-simulate``: a synthetic capture session in the rig's real file formats, with truth.
+
+Output folder (one session)::
+
+    session.json            what the rig recorded: devices, files, sync modes
+    kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH b16g)
+    calibration/<serial>.mkv  ChArUco board captures, one frame per board pose
+    imu/recording.mvnx      Xsens MVN export, 60 Hz on the IMU clock
+    imu/xbus.bin            the raw Xbus MTData2 stream of the 17 sensors (+ device_map.json)
+    chair_scan.obj          the chair as a 3D scanner delivers it (its own frame)
+    ground_truth.h5         the processed-session schema on the Kinect master clock
+    truth.json              everything else that is true: camera poses, clocks, chair pose, ...
+    masks/<serial>/NNNNN.png  person masks in colour pixels (with --masks)
+
+``--motion-only --sequences N`` writes N ground-truth motions (``motion_NNNNN.h5`` in the same
+schema, each with its own subject, chair and interaction) without rendering: training data.
+Everything is deterministic given ``--seed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time as wallclock
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from couch import __version__
+from couch.atomic import atomic_path
+from couch.body import BodyModel, load_body_model
+from couch.geometry import invert_transform, make_transform
+from couch.schema import write_processed
+from couch.tools.sim.chairs import KINDS, Chair, make_chair, random_chair_spec, save_mesh, scan_pose
+from couch.tools.sim.ik import yaw_matrix
+from couch.tools.sim.motion import (
+    INTERACTION_LABEL,
+    Motion,
+    generate_motion,
+    sample_interaction,
+)
+from couch.tools.sim.scene import chair_seat_geometry, load_chair
+from couch.tools.sim.truth import ChairPlacement, ground_truth
+
+HAND_INTERACTIONS = ("right_hand", "left_hand", "both_hands")
+
+
+@dataclasses.dataclass
+class SessionConfig:
+    """Options of one simulated session (the CLI's flags)."""
+
+    duration: float = 8.0  # s of Kinect recording
+    interaction: str | None = None  # None: drawn with the COUCH mix
+    chair: str | None = None  # a kind (straight/armchair/sofa/stool), an OBJ/PLY path, or None
+    cameras: int = 4
+    noise: float = 1.0  # scales depth noise and IMU errors (0 = perfect sensors)
+    clock_offset: float | None = None  # s: IMU clock reading at Kinect time 0 (None: random)
+    drift_ppm: float = 40.0  # IMU clock rate error against the Kinect clock
+    drop_rate: float = 0.0  # probability that a camera drops a frame
+    fmt: str = "mkv"
+    seed: int = 0
+    masks: bool = False
+    fps: float = 30.0
+    charuco_poses: int = 8
+    jpeg_quality: int = 90
+    model: str = "couch-body"
+
+
+@dataclasses.dataclass
+class SimulatedSequence:
+    """One subject on one chair: the motion (chair frame) and where the chair stands."""
+
+    motion: Motion
+    chair: Chair
+    chair_kind: str
+    placement: ChairPlacement
+    rejected: int  # draws thrown away by the plausibility checks
+
+
+def _chair(rng: np.random.Generator, chair: str | None, interaction: str) -> tuple[Chair, str]:
+    if chair is not None and Path(chair).suffix.lower() in (".obj", ".ply"):
+        return load_chair(chair), Path(chair).stem
+    kind = chair
+    if kind is None:
+        # a stool offers no hold for a supporting hand
+        kinds = [k for k in KINDS if not (k == "stool" and interaction in HAND_INTERACTIONS)]
+        kind = str(rng.choice(kinds))
+    if kind not in KINDS:
+        raise ValueError(f"--chair must be one of {KINDS} or an .obj/.ply file, got {chair!r}")
+    return make_chair(random_chair_spec(rng, kind)), kind
+
+
+def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyModel, *,
+                      interaction: str | None = None, chair: str | None = None,
+                      duration: float | None = None, max_draws: int = 25,
+                      ) -> SimulatedSequence:
+    """Draw a chair and a plausible motion on it, retrying draws the checks reject."""
+    interaction = interaction or sample_interaction(rng)
+    if interaction not in INTERACTION_LABEL:
+        raise ValueError(f"--interaction must be one of {list(INTERACTION_LABEL)}, "
+                         f"got {interaction!r}")
+    last_error: Exception | None = None
+    the_chair, kind = _chair(rng, chair, interaction)
+    seat = chair_seat_geometry(the_chair.vertices, the_chair.faces, the_chair.landmarks,
+                               the_chair.face_parts)
+    for draw in range(max_draws):
+        try:
+            motion = generate_motion(model, seat, rng, interaction=interaction,
+                                     duration=duration,
+                                     chair_mesh=(the_chair.vertices, the_chair.faces),
+                                     collision_model=coarse)
+        except ValueError as e:  # unreachable targets or a rejected draw: try another subject
+            last_error = e
+            if chair is None and draw % 5 == 4:
+                the_chair, kind = _chair(rng, None, interaction)
+                seat = chair_seat_geometry(the_chair.vertices, the_chair.faces,
+                                           the_chair.landmarks, the_chair.face_parts)
+            continue
+        yaw = rng.uniform(0, 2 * np.pi)
+        world_from_chair = make_transform(yaw_matrix(np.array([yaw]))[0],
+                                          [rng.uniform(-0.3, 0.3), 0.0, rng.uniform(-0.3, 0.3)])
+        placement = ChairPlacement(name=kind, vertices=the_chair.vertices,
+                                   faces=the_chair.faces, world_from_chair=world_from_chair,
+                                   chair_from_scan=invert_transform(scan_pose(rng)))
+        return SimulatedSequence(motion, the_chair, kind, placement, draw)
+    raise ValueError(f"could not generate a plausible {interaction!r} sequence on this chair in "
+                     f"{max_draws} draws (last: {last_error})")
+
+
+def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
+                            duration: float | None = None, fps: float = 30.0,
+                            interaction: str | None = None, chair: str | None = None,
+                            progress: bool = True) -> dict[str, Any]:
+    """``--motion-only``: ground-truth motions, no rendering. Returns the index it writes."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model, coarse = load_body_model("couch-body"), load_body_model("couch-body-coarse")
+    streams = np.random.SeedSequence(seed).spawn(sequences)
+    index = []
+    frames = 0
+    start = wallclock.perf_counter()
+    for i in tqdm(range(sequences), desc="sequences", disable=not progress):
+        rng = np.random.default_rng(streams[i])
+        seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
+                                duration=duration)
+        times = np.arange(0.0, seq.motion.duration, 1.0 / fps)
+        name = f"motion_{i:05d}"
+        truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=fps)
+        write_processed(out / f"{name}.h5", truth)
+        frames += len(times)
+        index.append({"file": f"{name}.h5", "interaction": seq.motion.interaction,
+                      "chair": seq.chair_kind, "frames": len(times),
+                      "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected})
+    summary = {"couch_version": __version__, "seed": seed, "fps": fps, "sequences": index,
+               "frames": frames, "seconds": round(wallclock.perf_counter() - start, 2)}
+    with atomic_path(out / "index.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _session_name(cfg: SessionConfig, kind: str, interaction: str) -> str:
+    return f"sim{cfg.seed:04d}_{kind}_{interaction}"
+
+
+def simulate_session(out_dir: str | Path, cfg: SessionConfig,
+                     progress: bool = True) -> dict[str, Any]:
+    """Write one full session (see the module docstring); returns the truth.json content."""
+    from couch.tools.sim.recording import record_session  # rendering needs the camera stack
+
+    if cfg.fmt not in ("mkv",):
+        raise ValueError(f"--format {cfg.fmt!r} is not supported yet (available: mkv)")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ss = np.random.SeedSequence(cfg.seed).spawn(4)
+    rng_motion, rng_rig, rng_imu, rng_noise = (np.random.default_rng(s) for s in ss)
+    model = load_body_model(cfg.model)
+    coarse = load_body_model("couch-body-coarse")
+    seq = simulate_sequence(rng_motion, model, coarse, interaction=cfg.interaction,
+                            chair=cfg.chair, duration=cfg.duration)
+    n = round(cfg.duration * cfg.fps)
+    times = np.arange(n) / cfg.fps
+    name = _session_name(cfg, seq.chair_kind, seq.motion.interaction)
+    truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=cfg.fps)
+    write_processed(out / "ground_truth.h5", truth)
+    save_mesh(out / "chair_scan.obj", seq.placement.scan_vertices, seq.placement.faces)
+    info = record_session(out, cfg, seq, truth, model, rng_rig, rng_imu, rng_noise, progress)
+    info.update({
+        "couch_version": __version__, "session": name, "seed": cfg.seed,
+        "config": dataclasses.asdict(cfg),
+        "chair": {"kind": seq.chair_kind,
+                  "world_from_chair": seq.placement.world_from_chair.tolist(),
+                  "chair_from_scan": seq.placement.chair_from_scan.tolist(),
+                  "world_from_scan": seq.placement.world_from_scan.tolist(),
+                  "spec": dataclasses.asdict(seq.chair.spec) if seq.chair.spec else None},
+        "motion": {"interaction": seq.motion.interaction, "rejected_draws": seq.rejected,
+                   "phases": [[p, round(a, 4), round(b, 4)] for p, a, b in seq.motion.phases],
+                   "hand_contacts": {s: {"start": a, "end": b, "point_chair": list(map(float, p)),
+                                         "part": part}
+                                     for s, (a, b, p, part) in seq.motion.hand_contacts.items()}},
+    })
+    with atomic_path(out / "truth.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2) + "\n")
+    return info
+
+
+def body_vertices(model: BodyModel, betas: np.ndarray, params: dict[str, np.ndarray],
+                  frames: slice) -> tuple[np.ndarray, np.ndarray]:
+    """Posed vertices (T,V,3) and joint transforms (T,24,4,4) of ``frames`` of ``params``."""
+    with torch.no_grad():
+        out = model(betas=betas[None], global_orient=params["global_orient"][frames],
+                    body_pose=params["body_pose"][frames], transl=params["transl"][frames])
+    return out.vertices.double().numpy(), out.joint_transforms.double().numpy()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="couch-simulate", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("out_dir", type=Path)
+    d = SessionConfig()
+    ap.add_argument("--duration", type=float, default=d.duration, help="seconds")
+    ap.add_argument("--interaction", choices=list(INTERACTION_LABEL), default=None,
+                    help="default: drawn with the COUCH dataset's mix")
+    ap.add_argument("--chair", default=None,
+                    help=f"one of {', '.join(KINDS)}, or an .obj/.ply in the chair frame")
+    ap.add_argument("--cameras", type=int, default=d.cameras)
+    ap.add_argument("--noise", type=float, default=d.noise,
+                    help="scale of depth noise and IMU errors (0: perfect sensors)")
+    ap.add_argument("--clock-offset", type=float, default=None,
+                    help="IMU clock reading (s) at Kinect time 0; default random")
+    ap.add_argument("--drift-ppm", type=float, default=d.drift_ppm)
+    ap.add_argument("--drop-rate", type=float, default=d.drop_rate,
+                    help="probability that a camera drops a frame")
+    ap.add_argument("--format", dest="fmt", choices=["mkv"], default=d.fmt)
+    ap.add_argument("--masks", action="store_true", help="also write person masks (PNG)")
+    ap.add_argument("--seed", type=int, default=d.seed)
+    ap.add_argument("--motion-only", action="store_true",
+                    help="write ground-truth motion only (no rendering), --sequences of them")
+    ap.add_argument("--sequences", type=int, default=1)
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    try:
+        if args.motion_only:
+            summary = simulate_motion_dataset(
+                args.out_dir, args.sequences, args.seed, None if args.duration == d.duration
+                else args.duration, interaction=args.interaction, chair=args.chair,
+                progress=not args.quiet)
+            print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
+                  f"to {args.out_dir} in {summary['seconds']} s")
+            return 0
+        cfg = SessionConfig(**{k: v for k, v in vars(args).items()
+                               if k in SessionConfig.__dataclass_fields__})
+        info = simulate_session(args.out_dir, cfg, progress=not args.quiet)
+    except (ValueError, OSError) as e:
+        print(f"couch-simulate: {e}", file=sys.stderr)
+        return 1
+    print(f"wrote session {info['session']} ({info['motion']['interaction']}, "
+          f"{cfg.cameras} cameras, {cfg.duration:g} s) to {args.out_dir}")
+    return 0
+
+
+__all__ = ["HAND_INTERACTIONS", "SessionConfig", "SimulatedSequence", "body_vertices",
+           "main", "simulate_motion_dataset", "simulate_sequence", "simulate_session"]
+
+
+if __name__ == "__main__":
+    sys.exit(main())
