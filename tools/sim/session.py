@@ -65,7 +65,8 @@ class SessionConfig:
     fmt: str = "mkv"
     seed: int = 0
     masks: bool = False
-    fps: float = 30.0
+    fps: float = 30.0  # an Azure Kinect rate: 5, 15 or 30
+    depth_mode: str = "NFOV_UNBINNED"  # or NFOV_2X2BINNED (320x288, for small fixtures)
     charuco_poses: int = 8
     jpeg_quality: int = 90
     model: str = "couch-body"
@@ -237,6 +238,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drop-rate", type=float, default=d.drop_rate,
                     help="probability that a camera drops a frame")
     ap.add_argument("--format", dest="fmt", choices=["mkv"], default=d.fmt)
+    ap.add_argument("--fps", type=float, choices=[5.0, 15.0, 30.0], default=d.fps,
+                    help="Kinect frame rate")
+    ap.add_argument("--depth-mode", choices=["NFOV_UNBINNED", "NFOV_2X2BINNED"],
+                    default=d.depth_mode)
+    ap.add_argument("--charuco-poses", type=int, default=d.charuco_poses,
+                    help="board poses in the calibration captures")
+    ap.add_argument("--jpeg-quality", type=int, default=d.jpeg_quality)
     ap.add_argument("--masks", action="store_true", help="also write person masks (PNG)")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--motion-only", action="store_true",

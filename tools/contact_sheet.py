@@ -1,0 +1,84 @@
+"""``couch-contact-sheet SESSION_DIR``: one frame of every camera, colour beside depth, as a PNG.
+
+Reads the recordings back through the capture stage's own MKV reader, so what it shows is what
+the pipeline will see. Depth is colour-mapped over 0.5–4 m (black = invalid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from couch.atomic import atomic_path
+from couch.capture.azure_mkv import KinectFormatError, decode_color, open_azure_mkv
+
+
+def colorize_depth(depth_mm: np.ndarray, near: float = 500.0, far: float = 4000.0) -> np.ndarray:
+    """(H,W) uint16 millimetres → (H,W,3) uint8 RGB (turbo colour map; invalid pixels black)."""
+    scaled = np.clip((depth_mm.astype(np.float32) - near) / (far - near), 0, 1)
+    rgb = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    return np.where(depth_mm[..., None] > 0, rgb, 0).astype(np.uint8)
+
+
+def _fit(image: np.ndarray, height: int) -> np.ndarray:
+    w = round(image.shape[1] * height / image.shape[0])
+    return cv2.resize(image, (w, height), interpolation=cv2.INTER_AREA)
+
+
+def contact_sheet(recordings: list[Path], frame: int, row_height: int = 240) -> np.ndarray:
+    """(H,W,3) uint8 RGB: one row per recording, its colour and depth images of ``frame``."""
+    rows = []
+    for path in recordings:
+        rec = open_azure_mkv(path)
+        cap = None
+        for cap in rec:
+            if cap.index >= frame and cap.color_jpeg is not None and cap.depth_mm is not None:
+                break
+        if cap is None or cap.color_jpeg is None or cap.depth_mm is None:
+            raise KinectFormatError(f"{path}: no capture with colour and depth at or after "
+                                    f"frame {frame}")
+        color = _fit(decode_color(cap.color_jpeg, source=str(path)), row_height)
+        depth = _fit(colorize_depth(cap.depth_mm), row_height)
+        row = np.concatenate([color, np.full((row_height, 6, 3), 255, np.uint8), depth], 1)
+        label = f"{rec.serial}  t={cap.timestamp_us / 1e6:.3f}s"
+        cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3)
+        cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+        rows.append(row)
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 6), (0, width - r.shape[1]), (0, 0)), constant_values=255)
+            for r in rows]
+    return np.concatenate(rows, 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="couch-contact-sheet", description=__doc__.split("\n")[0])
+    ap.add_argument("session_dir", type=Path)
+    ap.add_argument("-o", "--out", type=Path, default=None,
+                    help="PNG path (default: SESSION_DIR/contact_sheet.png)")
+    ap.add_argument("--frame", type=int, default=0, help="capture index")
+    ap.add_argument("--folder", default="kinect", help="kinect or calibration")
+    args = ap.parse_args(argv)
+    recordings = sorted((args.session_dir / args.folder).glob("*.mkv"))
+    if not recordings:
+        print(f"couch-contact-sheet: no .mkv files in {args.session_dir / args.folder}",
+              file=sys.stderr)
+        return 1
+    try:
+        sheet = contact_sheet(recordings, args.frame)
+    except (KinectFormatError, OSError) as e:
+        print(f"couch-contact-sheet: {e}", file=sys.stderr)
+        return 1
+    out = args.out or args.session_dir / "contact_sheet.png"
+    with atomic_path(out) as tmp:
+        if not cv2.imwrite(str(tmp), sheet[..., ::-1]):
+            raise OSError(f"{out}: could not write PNG")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,284 @@
+"""Recording a simulated session: what the rig's cameras and IMU suit write to disk.
+
+Called by :func:`couch.tools.sim.session.simulate_session` once the sequence and its ground truth
+exist. Cameras are hardware-synchronised (one master, the rest subordinate) and capture every
+frame at the same instant on the Kinect master clock; each device stamps it on its own device
+clock (a per-device offset from the master plus microsecond jitter), as real recordings do. The
+IMU suit records on its own drifting clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from couch.atomic import atomic_path
+from couch.body import BodyModel
+from couch.capture.azure_calibration import KinectCalibration
+from couch.capture.azure_mkv import AzureMkvWriter
+from couch.capture.charuco import BoardSpec
+from couch.capture.mvnx import write_mvnx
+from couch.capture.xbus import write_device_map
+from couch.geometry import make_transform
+from couch.schema import ProcessedSession
+from couch.tools.sim.chairs import make_room
+from couch.tools.sim.clothing import dress, make_clothing
+from couch.tools.sim.ik import frame_from
+from couch.tools.sim.imu import ImuConfig, body_track_from_model, simulate_mvnx, simulate_xbus
+from couch.tools.sim.kinect import (
+    LABEL_BACKGROUND,
+    LABEL_CHAIR,
+    LABEL_PERSON,
+    DepthNoise,
+    Light,
+    SceneMesh,
+    board_mesh,
+    build_scene,
+    place_cameras,
+    render_color,
+    render_depth,
+    world_from_color,
+)
+from couch.tools.sim.motion import DENSE_HZ
+from couch.tools.sim.truth import motion_in_world
+
+if TYPE_CHECKING:
+    from couch.tools.sim.session import SessionConfig, SimulatedSequence
+
+# Garment groups by dominant joint: shirt on the torso and arms, trousers on the legs.
+_SHIRT = ("spine1", "spine2", "spine3", "left_collar", "right_collar", "left_shoulder",
+          "right_shoulder", "left_elbow", "right_elbow", "neck")
+_TROUSERS = ("pelvis", "left_hip", "right_hip", "left_knee", "right_knee")
+_SHOES = ("left_ankle", "right_ankle", "left_foot", "right_foot")
+
+
+def _scaled(config: Any, scale: float, fields: tuple[str, ...]) -> Any:
+    return dataclasses.replace(config, **{f: getattr(config, f) * scale for f in fields})
+
+
+def depth_noise(scale: float) -> DepthNoise:
+    """The default Azure-like depth artefacts, their magnitudes times ``scale`` (0: exact)."""
+    if scale <= 0:
+        return DepthNoise.none()
+    return _scaled(DepthNoise(), scale, ("sigma_a", "sigma_b", "offset_std", "scale_std",
+                                         "radial_std", "lateral_px", "dropout"))
+
+
+def imu_config(scale: float, clock_offset: float, drift_ppm: float) -> ImuConfig:
+    """The default IMU errors times ``scale`` (0: a perfect suit), on the given clock."""
+    if scale <= 0:
+        return ImuConfig.perfect(clock_offset=clock_offset, drift_ppm=drift_ppm)
+    base = ImuConfig(clock_offset=clock_offset, drift_ppm=drift_ppm)
+    return _scaled(base, scale, (
+        "heading_drift_deg_per_min", "heading_walk_deg_per_sqrt_min", "misalignment_deg",
+        "tilt_noise_deg", "heading_noise_deg", "position_walk_m_per_sqrt_min",
+        "vertical_bias_std", "acc_noise_density", "gyro_noise_density", "acc_bias_std",
+        "gyro_bias_std", "corrupt_rate", "truncate_rate", "drop_rate"))
+
+
+def person_colors(model: BodyModel, rng: np.random.Generator) -> np.ndarray:
+    """(V,3) RGB albedo: skin, a shirt, trousers and shoes, by each vertex's dominant joint."""
+    dominant = model.weights.argmax(1).numpy()
+    names = np.asarray(model.joint_names)[dominant]
+    skin = np.array([rng.uniform(0.45, 0.9), rng.uniform(0.3, 0.7), rng.uniform(0.2, 0.55)])
+    skin[1] = min(skin[1], skin[0] * 0.85)
+    skin[2] = min(skin[2], skin[1] * 0.9)
+    shirt, trousers = rng.uniform(0.05, 0.9, 3), rng.uniform(0.05, 0.5, 3)
+    colors = np.tile(skin, (len(names), 1))
+    colors[np.isin(names, _SHIRT)] = shirt
+    colors[np.isin(names, _TROUSERS)] = trousers
+    colors[np.isin(names, _SHOES)] = rng.uniform(0.05, 0.25) * np.ones(3)
+    return colors
+
+
+def _board_poses(rng: np.random.Generator, cams: list[np.ndarray], centre: np.ndarray,
+                 count: int, spec: BoardSpec) -> list[np.ndarray]:
+    """World-from-board poses held up around ``centre``, each facing one camera (in turn) with
+    some tilt, so every camera sees the board several times."""
+    poses = []
+    w, h = spec.size
+    for k in range(count):
+        cam = cams[k % len(cams)][:3, 3]
+        pos = centre + np.array([rng.uniform(-0.4, 0.4), rng.uniform(0.2, 0.7),
+                                 rng.uniform(-0.4, 0.4)])
+        face = cam - pos
+        face /= np.linalg.norm(face)
+        tilt = rng.normal(0, 0.25, 3)
+        face = face + tilt - (tilt @ face) * face
+        face /= np.linalg.norm(face)
+        # board +Z points into the board: away from the camera; +Y (down the columns) ≈ down
+        rot = frame_from(-face, np.array([0.0, -1.0, 0.0]))  # columns: z, y, x (permuted below)
+        z_axis, y_axis = rot[:, 0], rot[:, 1]
+        x_axis = np.cross(y_axis, z_axis)
+        r = np.stack([x_axis, y_axis, z_axis], axis=1)
+        origin = pos - r @ np.array([w / 2, h / 2, 0.0])
+        poses.append(make_transform(r, origin))
+    return poses
+
+
+def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
+                   truth: ProcessedSession, model: BodyModel, rng_rig: np.random.Generator,
+                   rng_imu: np.random.Generator, rng_noise: np.random.Generator,
+                   progress: bool = True) -> dict[str, Any]:
+    """Write kinect/, calibration/, imu/ (and masks/) under ``out``; return their truth."""
+    times = truth.time
+    n = len(times)
+    chair_pos = seq.placement.world_from_chair[:3, 3]
+    target = chair_pos + np.array([0.0, 0.8, 0.0])
+    rig = place_cameras(rng_rig, cfg.cameras, target=tuple(target))
+    if cfg.depth_mode != "NFOV_UNBINNED":  # same devices, another depth mode
+        rig = [(KinectCalibration.from_json(c.to_json(), depth_mode=cfg.depth_mode), pose)
+               for c, pose in rig]
+    cams = [pose for _, pose in rig]
+    room = make_room(rng_rig, avoid=[(p[0, 3], p[2, 3], 0.5) for p in cams])
+    light = Light.random(rng_rig)
+    noise = depth_noise(cfg.noise)
+
+    statics = [SceneMesh(o.vertices, o.faces, label=LABEL_BACKGROUND, color=o.color,
+                         texture="floor" if o.name == "floor" else None) for o in room]
+    wood = tuple(rng_rig.uniform([0.35, 0.2, 0.1], [0.7, 0.5, 0.3]))
+    chair_mesh = SceneMesh(seq.placement.world_vertices, seq.placement.faces, label=LABEL_CHAIR,
+                           color=wood, texture="wood", texture_coords=seq.placement.vertices)
+
+    # Devices: device 0 is the sync master; subordinates' device clocks started at other times.
+    offsets = [0.0, *list(rng_rig.uniform(0.2, 4.0, cfg.cameras - 1))]
+    devices = []
+    for i, (calib, pose) in enumerate(rig):
+        jitter = np.round(rng_rig.normal(0.0, 40.0, n)).astype(np.int64)
+        stamps = np.round((times + offsets[i]) * 1e6).astype(np.int64) + jitter
+        dropped = np.flatnonzero(rng_rig.random(n) < cfg.drop_rate)
+        devices.append({"calib": calib, "pose": pose, "stamps": stamps,
+                        "dropped": set(dropped.tolist()), "jitter": jitter})
+
+    clothing = make_clothing(model, seq.motion.betas, rng_rig)
+    colors = person_colors(model, rng_rig)
+    rest = model(betas=seq.motion.betas[None]).vertices[0].detach().double().numpy()
+    params = {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
+              "transl": truth.transl}
+    from couch.tools.sim.session import body_vertices
+
+    (out / "kinect").mkdir(parents=True, exist_ok=True)
+    writers = [AzureMkvWriter(out / "kinect" / f"{d['calib'].serial}.mkv", d["calib"],
+                              fps=round(cfg.fps),
+                              wired_sync_mode="MASTER" if i == 0 else "SUBORDINATE")
+               for i, d in enumerate(devices)]
+    chunk = 16
+    try:
+        for a in tqdm(range(0, n, chunk), desc="rendering", unit="x16 frames",
+                      disable=not progress):
+            sl = slice(a, min(n, a + chunk))
+            verts, transforms = body_vertices(model, seq.motion.betas, params, sl)
+            clothed = dress(clothing, model, verts, transforms, truth.body_pose[sl])
+            for j, k in enumerate(range(sl.start, sl.stop)):
+                person = SceneMesh(clothed[j], model.faces, label=LABEL_PERSON,
+                                   vertex_colors=colors, texture="fabric",
+                                   texture_coords=rest, smooth=True)
+                scene = build_scene([*statics, chair_mesh, person])
+                for dev, writer in zip(devices, writers, strict=True):
+                    if k in dev["dropped"]:
+                        continue
+                    depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
+                    color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
+                                         cfg.jpeg_quality)
+                    writer.write(int(dev["stamps"][k]), color_jpeg=color.jpeg,
+                                 depth_mm=depth.depth_mm)
+                    if cfg.masks:
+                        path = out / "masks" / dev["calib"].serial / f"{k:05d}.png"
+                        path.parent.mkdir(parents=True, exist_ok=True)
+                        with atomic_path(path) as tmp:
+                            cv2.imwrite(str(tmp), color.person_mask.astype(np.uint8) * 255)
+    finally:
+        for writer in writers:
+            writer.close()
+
+    # ChArUco captures for extrinsic calibration: the board alone in the room.
+    spec = BoardSpec()
+    boards = _board_poses(rng_rig, cams, chair_pos + np.array([0.0, 0.6, 0.0]),
+                          cfg.charuco_poses, spec)
+    (out / "calibration").mkdir(exist_ok=True)
+    for i, dev in enumerate(devices):
+        with AzureMkvWriter(out / "calibration" / f"{dev['calib'].serial}.mkv", dev["calib"],
+                            fps=round(cfg.fps),
+                            wired_sync_mode="MASTER" if i == 0 else "SUBORDINATE") as w:
+            for b, pose in enumerate(boards):
+                scene = build_scene([*statics, chair_mesh, board_mesh(spec, pose)])
+                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
+                color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
+                                     cfg.jpeg_quality)
+                w.write(round((b + offsets[i]) * 1e6), color_jpeg=color.jpeg,
+                        depth_mm=depth.depth_mm)
+
+    imu = _record_imu(out / "imu", cfg, seq, model, rng_imu)
+
+    session = {
+        "name": truth.session,
+        "kinect": [{"serial": d["calib"].serial, "file": f"kinect/{d['calib'].serial}.mkv",
+                    "calibration_capture": f"calibration/{d['calib'].serial}.mkv",
+                    "sync": "MASTER" if i == 0 else "SUBORDINATE"}
+                   for i, d in enumerate(devices)],
+        "imu": {"mvnx": "imu/recording.mvnx", "xbus": "imu/xbus.bin",
+                "device_map": "imu/device_map.json"},
+        "chair_scan": "chair_scan.obj",
+        "board": dataclasses.asdict(spec),
+    }
+    with atomic_path(out / "session.json") as tmp:
+        tmp.write_text(json.dumps(session, indent=2) + "\n")
+    return {
+        "cameras": [{
+            "serial": d["calib"].serial, "world_from_depth": d["pose"].tolist(),
+            "world_from_color": world_from_color(d["calib"], d["pose"]).tolist(),
+            "device_clock_offset_s": float(offsets[i]),
+            "timestamp_jitter_us_std": 40.0,
+            "dropped_frames": sorted(d["dropped"]),
+        } for i, d in enumerate(devices)],
+        "kinect_time_of_frame": "frame k is captured at k / fps s on the master clock; device "
+                                "timestamp = that + device_clock_offset_s + jitter",
+        "board_poses_world_from_board": [p.tolist() for p in boards],
+        "light": dataclasses.asdict(light),
+        "depth_noise": dataclasses.asdict(noise),
+        "imu": imu,
+        "clothing": {"hand_scale": clothing.hand_scale, "foot_scale": clothing.foot_scale,
+                     "max_offset_m": float(np.linalg.norm(clothing.rest_offset, axis=1).max())},
+    }
+
+
+def _record_imu(out: Path, cfg: SessionConfig, seq: SimulatedSequence, model: BodyModel,
+                rng: np.random.Generator) -> dict[str, Any]:
+    """Write imu/recording.mvnx, imu/xbus.bin and imu/device_map.json; return the clock and
+    error truth."""
+    out.mkdir(parents=True, exist_ok=True)
+    rest_pelvis = model.rest_joints(seq.motion.betas[None])[0, 0].double().numpy()
+    dense = np.arange(0.0, cfg.duration + 0.5, 1.0 / DENSE_HZ)
+    params = motion_in_world(seq.motion, dense, seq.placement.world_from_chair, rest_pelvis)
+    track = body_track_from_model(model, dense, params["global_orient"], params["body_pose"],
+                                  params["transl"], seq.motion.betas)
+    offset = cfg.clock_offset if cfg.clock_offset is not None else -float(
+        rng.uniform(0.2, 1.5))
+    config = imu_config(cfg.noise, offset, cfg.drift_ppm)
+    state = rng.bit_generator.state
+    rec, truth = simulate_mvnx(track, config, rng)
+    write_mvnx(out / "recording.mvnx", rec)
+    # the Xbus stream is the same suit in the same session: replay the same random draws
+    rng.bit_generator.state = state
+    stream, device_map, xtruth = simulate_xbus(track, config, rng)
+    with atomic_path(out / "xbus.bin") as tmp:
+        tmp.write_bytes(stream)
+    write_device_map(out / "device_map.json", device_map)
+    return {
+        "clock": "t_imu = (1 + drift_ppm * 1e-6) * t_kinect + clock_offset",
+        "clock_offset_s": float(truth.clock_offset), "drift_ppm": float(truth.drift_ppm),
+        "clock_scale": float(truth.clock_scale),
+        "heading_offset_deg": float(np.degrees(truth.heading_offset)),
+        "samples": len(rec.time_ms),
+        "xbus_messages": len(xtruth.msg_state),
+        "xbus_damaged": int(np.count_nonzero(xtruth.damaged)),
+        "xbus_dropped": int(np.count_nonzero(xtruth.dropped)),
+        "errors": {k: v for k, v in dataclasses.asdict(config).items()
+                   if isinstance(v, int | float)},
+    }
