@@ -507,7 +507,7 @@ class MotionRejected(ValueError):
 
 
 def max_penetration(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
-                    hz: float = 15.0) -> float:
+                    hz: float = 30.0) -> float:
     """Deepest penetration (m) of the body into the chair over the sequence, sampled at ``hz``."""
     from couch.tools.sim.quality import penetration_depth
 
@@ -865,6 +865,9 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
             under_thigh = part.endswith("seat") and abs(point[0] - hips[0]) < (
                 body.hip_half_width + body.thigh_radius + 0.03) and point[2] < hips[2] + (
                 body.leg[0])
+            if part.endswith("back") and point[2] < hips[2] - 0.3:
+                wins.append(None)  # a backrest far behind the sitter is not reached for
+                continue
             # a palm where the thigh lands must be gone before the hips come down
             last = sit[0] + 0.65 * (sit[1] - sit[0]) if under_thigh else end
             near = (np.linalg.norm(point - shoulder, axis=1) < 0.9 * arm + slack) & (

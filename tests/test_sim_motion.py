@@ -1,0 +1,94 @@
+"""The simulator's procedural motion against the issue's plausibility thresholds.
+
+Settings: one sequence per interaction type and chair kind below (seed per case), the full body
+model's skeleton, 30 fps sampling. Thresholds: stance feet slide < 1 cm, penetration into the
+chair < 2 cm, no joint outside its anatomical range, planned palm contacts really touch the
+chair, and the interaction mix follows the COUCH dataset's proportions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from couch.body import load_body_model
+from couch.body.limits import joint_limit_excess_deg
+from couch.tools.sim.motion import INTERACTION_MIX, sample_interaction
+from couch.tools.sim.quality import foot_slide, penetration_depth
+from couch.tools.sim.session import simulate_motion_dataset, simulate_sequence
+from couch.tools.sim.truth import ground_truth
+
+CASES = [("right_hand", "armchair", 1), ("left_hand", "straight", 2), ("both_hands", "sofa", 3),
+         ("both_hands", "straight", 4), ("no_contact", "stool", 5), ("free", "armchair", 6),
+         ("locomotion", "sofa", 7), ("right_hand", "sofa", 8)]
+
+
+@pytest.fixture(scope="module")
+def models():
+    return load_body_model("couch-body"), load_body_model("couch-body-coarse")
+
+
+@pytest.fixture(scope="module")
+def sequences(models):
+    full, coarse = models
+    out = []
+    for interaction, kind, seed in CASES:
+        seq = simulate_sequence(np.random.default_rng(seed), full, coarse,
+                                interaction=interaction, chair=kind)
+        times = np.arange(0.0, seq.motion.duration, 1 / 30)
+        truth = ground_truth("t", seq.motion, times, seq.placement, full, coarse)
+        out.append((interaction, kind, seq, truth))
+    return out
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_motion_is_plausible(case, sequences, models):
+    full, coarse = models
+    interaction, kind, seq, truth = sequences[case]
+    assert foot_slide(truth.joints) < 0.01
+    with torch.no_grad():
+        v = coarse(betas=truth.betas[None], global_orient=truth.global_orient,
+                   body_pose=truth.body_pose, transl=truth.transl).vertices.numpy()
+    chair_world = seq.placement.world_vertices
+    assert penetration_depth(v, chair_world, seq.placement.faces).max() < 0.02
+    assert joint_limit_excess_deg(truth.body_pose).max() < 0.5
+    assert v[..., 1].min() > -0.02  # nobody sinks into the floor
+    labels = set(np.unique(truth.interaction).tolist())
+    if interaction == "locomotion":
+        assert labels == {0}
+        assert not truth.contact_active[:, 0].any()  # walking past, never sitting
+    else:
+        assert labels <= {0, {"right_hand": 1, "left_hand": 2, "both_hands": 3,
+                              "no_contact": 4, "free": 5}[interaction]}
+        assert truth.contact_active[:, 0].sum() > 15  # seated for over half a second
+
+
+@pytest.mark.parametrize("case", [i for i, c in enumerate(CASES) if c[0].endswith("hand")
+                                  or c[0] == "both_hands"])
+def test_planned_palm_contacts_touch_the_chair(case, sequences):
+    interaction, _, seq, truth = sequences[case]
+    sides = ["left", "right"] if interaction == "both_hands" else [interaction.split("_")[0]]
+    for side in sides:
+        assert side in seq.motion.hand_contacts
+        column = 1 if side == "left" else 2  # /contacts/names order
+        assert truth.contact_active[:, column].sum() >= 5, f"{side} hand never touches"
+
+
+def test_interaction_mix_follows_the_couch_dataset():
+    rng = np.random.default_rng(0)
+    draws = [sample_interaction(rng) for _ in range(20000)]
+    for name, share in INTERACTION_MIX.items():
+        assert abs(draws.count(name) / len(draws) - share) < 0.01, name
+
+
+def test_motion_only_dataset(tmp_path):
+    summary = simulate_motion_dataset(tmp_path, 2, seed=5, progress=False)
+    assert [s["file"] for s in summary["sequences"]] == ["motion_00000.h5", "motion_00001.h5"]
+    from couch.schema import read_processed
+
+    first = read_processed(tmp_path / "motion_00000.h5")
+    assert first.num_frames == summary["sequences"][0]["frames"]
+    again = simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
+    assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
+                          first.joints)  # deterministic by seed

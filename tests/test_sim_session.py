@@ -1,0 +1,155 @@
+"""couch-simulate end to end: every output opened by a reader that did not write it.
+
+Simulator settings of the session generated here (once per test module): 4 cameras, 2 s at
+5 fps, NFOV_2X2BINNED depth, 20% dropped frames, default noise (1.0), IMU clock offset −0.7 s
+and drift +150 ppm, seed 11.
+"""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from couch.capture.azure_calibration import KinectCalibration
+from couch.capture.azure_mkv import open_azure_mkv
+from couch.capture.xbus import XbusParser, read_device_map
+from couch.geometry import apply_transform
+from couch.schema import read_processed
+from couch.tools.contact_sheet import main as contact_sheet_main
+from couch.tools.sim.chairs import load_mesh
+from couch.tools.sim.session import SessionConfig, simulate_session
+
+MVN_NS = "{http://www.xsens.com/mvn/mvnx}"
+CFG = SessionConfig(duration=2.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED",
+                    drop_rate=0.2, clock_offset=-0.7, drift_ppm=150.0, charuco_poses=3,
+                    jpeg_quality=80, seed=11)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("session")
+    info = simulate_session(out, CFG, progress=False)
+    return out, info
+
+
+def test_layout_and_manifest(session):
+    out, info = session
+    manifest = json.loads((out / "session.json").read_text())
+    assert len(manifest["kinect"]) == 4
+    for dev in manifest["kinect"]:
+        assert (out / dev["file"]).is_file() and (out / dev["calibration_capture"]).is_file()
+    assert [d["sync"] for d in manifest["kinect"]].count("MASTER") == 1
+    for key in ("mvnx", "xbus", "device_map"):
+        assert (out / manifest["imu"][key]).is_file()
+    assert info["motion"]["interaction"] in ("right_hand", "left_hand", "both_hands",
+                                             "no_contact", "free", "locomotion")
+
+
+def test_pyav_decodes_the_recordings_and_frames_drop_as_asked(session):
+    out, info = session
+    n = round(CFG.duration * CFG.fps)
+    total_dropped = 0
+    for cam in info["cameras"]:
+        path = out / "kinect" / f"{cam['serial']}.mkv"
+        with av.open(str(path)) as container:
+            titles = {s.metadata.get("title") for s in container.streams.video}
+            assert {"COLOR", "DEPTH"} <= titles
+            depth_stream = next(s for s in container.streams.video
+                                if s.metadata.get("title") == "DEPTH")
+            frames = [f.to_ndarray() for f in container.decode(depth_stream)]
+            attachments = [a for a in container.streams.attachments]
+            assert attachments and json.loads(bytes(attachments[0].data))
+        assert len(frames) == n - len(cam["dropped_frames"])
+        assert frames[0].shape == (288, 320) and frames[0].dtype == np.uint16
+        # our reader returns the very same depth PyAV decodes
+        ours = [c.depth_mm for c in open_azure_mkv(path) if c.depth_mm is not None]
+        assert all(np.array_equal(a, b) for a, b in zip(frames, ours, strict=True))
+        valid = frames[0] > 0
+        assert 0.2 < valid.mean() and 300 < np.median(frames[0][valid]) < 6000
+        total_dropped += len(cam["dropped_frames"])
+    # 40 camera-frames at p = 0.2: 8 expected, binomial sd 2.5
+    assert 1 <= total_dropped <= 16
+
+
+def test_attached_calibration_matches_the_truth(session):
+    out, info = session
+    for cam in info["cameras"]:
+        rec = open_azure_mkv(out / "kinect" / f"{cam['serial']}.mkv")
+        calib = rec.calibration
+        assert isinstance(calib, KinectCalibration)
+        assert (calib.depth.width, calib.depth.height) == (320, 288)
+        world_from_color = np.asarray(cam["world_from_color"])
+        world_from_depth = np.asarray(cam["world_from_depth"])
+        # the colour camera sits where calibration's color_from_depth puts it
+        assert np.allclose(world_from_depth @ np.linalg.inv(calib.color_from_depth),
+                           world_from_color, atol=1e-6)
+
+
+def test_device_timestamps_follow_each_device_clock(session):
+    out, info = session
+    for cam in info["cameras"]:
+        stamps = [c.timestamp_us for c in open_azure_mkv(out / "kinect" / f"{cam['serial']}.mkv")]
+        kept = [k for k in range(round(CFG.duration * CFG.fps)) if k not in cam["dropped_frames"]]
+        expected = (np.array(kept) / CFG.fps + cam["device_clock_offset_s"]) * 1e6
+        assert np.abs(np.array(stamps) - expected).max() < 300  # jitter: 40 us std
+
+
+def test_mvnx_parses_as_plain_xml_on_the_asked_clock(session):
+    out, info = session
+    root = ET.parse(out / "imu" / "recording.mvnx").getroot()
+    assert root.tag == f"{MVN_NS}mvnx"
+    subject = root.find(f"{MVN_NS}subject")
+    assert subject.get("frameRate") == "60" and subject.get("segmentCount") == "23"
+    frames = [f for f in subject.find(f"{MVN_NS}frames") if f.get("type") == "normal"]
+    times = np.array([int(f.get("time")) for f in frames]) / 1000.0
+    orient = np.array(frames[0].find(f"{MVN_NS}orientation").text.split(), float)
+    assert orient.shape == (23 * 4,)
+    assert np.allclose(np.diff(times), 1 / 60, atol=1.01e-3)
+    imu = info["imu"]
+    assert imu["clock_offset_s"] == pytest.approx(-0.7)
+    assert imu["drift_ppm"] == pytest.approx(150.0)
+    # the IMU starts 0.7 s after the Kinects (offset −0.7 s on its own clock) and then runs
+    # over the rest of the session: its span is what the clock model says
+    kinect_end = CFG.duration + 0.5  # the track the suit sees runs 0.5 s past the last frame
+    span = (1 + 150e-6) * kinect_end - 0.7
+    assert abs(times[-1] - span) < 2 / 60
+
+
+def test_xbus_checksums_hold_except_where_corrupted(session):
+    out, info = session
+    parser = XbusParser()
+    samples = parser.feed((out / "imu" / "xbus.bin").read_bytes()) + parser.flush()
+    stats = parser.stats
+    damaged, dropped = info["imu"]["xbus_damaged"], info["imu"]["xbus_dropped"]
+    assert stats.checksum_errors + stats.truncated + stats.malformed == damaged
+    assert len(samples) == info["imu"]["xbus_messages"] - damaged - dropped
+    device_map = read_device_map(out / "imu" / "device_map.json")
+    assert len(device_map) == 17
+    assert {s.device_id for s in samples} == set(device_map)
+
+
+def test_ground_truth_and_chair_scan_agree(session):
+    out, info = session
+    truth = read_processed(out / "ground_truth.h5")
+    assert truth.num_frames == round(CFG.duration * CFG.fps)
+    v, f = load_mesh(out / "chair_scan.obj")
+    assert np.allclose(v, truth.object_vertices, atol=1e-5)
+    world = apply_transform(np.asarray(info["chair"]["world_from_scan"]), v)
+    assert abs(world[:, 1].min()) < 1e-4  # the chair stands on the floor in the world
+    assert np.allclose(truth.object_pose, info["chair"]["world_from_scan"])
+
+
+def test_contact_sheet_tool(session, tmp_path):
+    out, _ = session
+    png = tmp_path / "sheet.png"
+    assert contact_sheet_main([str(out), "-o", str(png), "--frame", "3"]) == 0
+    import cv2
+
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] > 4 * 200  # one row per camera
+    assert contact_sheet_main([str(tmp_path / "nothing")]) == 1
