@@ -7,7 +7,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.couch-installed
 
-.PHONY: test demo lint bench system-deps clean
+.PHONY: test demo lint bench fixtures system-deps clean
 
 $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory system-deps
@@ -34,7 +34,11 @@ system-deps:
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
+# The furthest-along main job on the bundled fixture session: what the cameras recorded (contact
+# sheet), its ground truth (couch-inspect), and the body model seated (preview PNG).
 demo: $(STAMP)
+	$(BIN)/couch-contact-sheet fixtures/sessions/sim_fixture --frame 6 -o out/fixture_contact_sheet.png
+	$(BIN)/couch-inspect fixtures/sessions/sim_fixture/ground_truth.h5
 	$(BIN)/couch-demo -o out/demo_sitting.png
 
 lint: $(STAMP)
@@ -45,3 +49,11 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
+
+# The committed fixture session (fixtures/sessions/sim_fixture): regenerate with `make fixtures`.
+# 2 s, 4 cameras at 5 fps, 320x288 depth (NFOV_2X2BINNED), 3 ChArUco poses, seed 4.
+FIXTURE := fixtures/sessions/sim_fixture
+fixtures: $(STAMP)
+	rm -rf $(FIXTURE)
+	$(BIN)/couch-simulate $(FIXTURE) --duration 2 --fps 5 --cameras 4 \
+	  --depth-mode NFOV_2X2BINNED --charuco-poses 3 --jpeg-quality 80 --masks --seed 4 --quiet

@@ -44,8 +44,8 @@ def sequences(models):
 
 @pytest.mark.parametrize("case", range(len(CASES)))
 def test_motion_is_plausible(case, sequences, models):
-    full, coarse = models
-    interaction, kind, seq, truth = sequences[case]
+    _full, coarse = models
+    interaction, _kind, seq, truth = sequences[case]
     assert foot_slide(truth.joints) < 0.01
     with torch.no_grad():
         v = coarse(betas=truth.betas[None], global_orient=truth.global_orient,
@@ -89,6 +89,6 @@ def test_motion_only_dataset(tmp_path):
 
     first = read_processed(tmp_path / "motion_00000.h5")
     assert first.num_frames == summary["sequences"][0]["frames"]
-    again = simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
+    simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
     assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
                           first.joints)  # deterministic by seed

@@ -95,7 +95,8 @@ def test_device_timestamps_follow_each_device_clock(session):
     for cam in info["cameras"]:
         stamps = [c.timestamp_us for c in open_azure_mkv(out / "kinect" / f"{cam['serial']}.mkv")]
         kept = [k for k in range(round(CFG.duration * CFG.fps)) if k not in cam["dropped_frames"]]
-        expected = (np.array(kept) / CFG.fps + cam["device_clock_offset_s"]) * 1e6
+        first = info["motion"]["kinect_time_of_first_frame_s"]
+        expected = (first + np.array(kept) / CFG.fps + cam["device_clock_offset_s"]) * 1e6
         assert np.abs(np.array(stamps) - expected).max() < 300  # jitter: 40 us std
 
 
@@ -115,7 +116,8 @@ def test_mvnx_parses_as_plain_xml_on_the_asked_clock(session):
     assert imu["drift_ppm"] == pytest.approx(150.0)
     # the IMU starts 0.7 s after the Kinects (offset −0.7 s on its own clock) and then runs
     # over the rest of the session: its span is what the clock model says
-    kinect_end = CFG.duration + 0.5  # the track the suit sees runs 0.5 s past the last frame
+    # the suit sees the motion from the first Kinect frame to 0.5 s past the last
+    kinect_end = info["motion"]["kinect_time_of_first_frame_s"] + CFG.duration + 0.5
     span = (1 + 150e-6) * kinect_end - 0.7
     assert abs(times[-1] - span) < 2 / 60
 
@@ -137,7 +139,7 @@ def test_ground_truth_and_chair_scan_agree(session):
     out, info = session
     truth = read_processed(out / "ground_truth.h5")
     assert truth.num_frames == round(CFG.duration * CFG.fps)
-    v, f = load_mesh(out / "chair_scan.obj")
+    v, _f = load_mesh(out / "chair_scan.obj")
     assert np.allclose(v, truth.object_vertices, atol=1e-5)
     world = apply_transform(np.asarray(info["chair"]["world_from_scan"]), v)
     assert abs(world[:, 1].min()) < 1e-4  # the chair stands on the floor in the world
@@ -153,3 +155,24 @@ def test_contact_sheet_tool(session, tmp_path):
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 4 * 200  # one row per camera
     assert contact_sheet_main([str(tmp_path / "nothing")]) == 1
+
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"
+
+
+def test_committed_fixture_session_is_complete_and_readable():
+    """The bundled session (`make fixtures` regenerates it) opens with the readers."""
+    from couch.capture.mvnx import read_mvnx
+
+    manifest = json.loads((FIXTURE / "session.json").read_text())
+    truth = read_processed(FIXTURE / "ground_truth.h5")
+    info = json.loads((FIXTURE / "truth.json").read_text())
+    assert truth.num_frames == 10 and len(manifest["kinect"]) == 4
+    for dev, cam in zip(manifest["kinect"], info["cameras"], strict=True):
+        caps = list(open_azure_mkv(FIXTURE / dev["file"]))
+        assert len(caps) == truth.num_frames - len(cam["dropped_frames"])
+        assert all(c.depth_mm.shape == (288, 320) for c in caps)
+        masks = sorted((FIXTURE / "masks" / dev["serial"]).glob("*.png"))
+        assert len(masks) == len(caps)
+    rec = read_mvnx(FIXTURE / manifest["imu"]["mvnx"])
+    assert rec.orientation.shape[1:] == (23, 4) and rec.frame_rate == 60

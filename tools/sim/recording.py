@@ -10,6 +10,7 @@ IMU suit records on its own drifting clock.
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -122,10 +123,20 @@ def _board_poses(rng: np.random.Generator, cams: list[np.ndarray], centre: np.nd
     return poses
 
 
+def _writer_options(cfg: SessionConfig, device: int, calibration: bool = False
+                    ) -> dict[str, Any]:
+    """MKV writer settings: sync role, and seeded UIDs and a fixed creation date so that the
+    same seed writes the same bytes."""
+    start = _dt.datetime(2026, 1, 1, 12, 0, tzinfo=_dt.UTC) + _dt.timedelta(minutes=cfg.seed)
+    return {"fps": round(cfg.fps), "wired_sync_mode": "MASTER" if device == 0 else "SUBORDINATE",
+            "uid_seed": cfg.seed * 1000 + device * 2 + calibration,
+            "creation_time": start - _dt.timedelta(minutes=5) if calibration else start}
+
+
 def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                    truth: ProcessedSession, model: BodyModel, rng_rig: np.random.Generator,
                    rng_imu: np.random.Generator, rng_noise: np.random.Generator,
-                   progress: bool = True) -> dict[str, Any]:
+                   motion_offset: float = 0.0, progress: bool = True) -> dict[str, Any]:
     """Write kinect/, calibration/, imu/ (and masks/) under ``out``; return their truth."""
     times = truth.time
     n = len(times)
@@ -165,9 +176,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
 
     (out / "kinect").mkdir(parents=True, exist_ok=True)
     writers = [AzureMkvWriter(out / "kinect" / f"{d['calib'].serial}.mkv", d["calib"],
-                              fps=round(cfg.fps),
-                              wired_sync_mode="MASTER" if i == 0 else "SUBORDINATE")
-               for i, d in enumerate(devices)]
+                              **_writer_options(cfg, i)) for i, d in enumerate(devices)]
     chunk = 16
     try:
         for a in tqdm(range(0, n, chunk), desc="rendering", unit="x16 frames",
@@ -204,8 +213,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
     (out / "calibration").mkdir(exist_ok=True)
     for i, dev in enumerate(devices):
         with AzureMkvWriter(out / "calibration" / f"{dev['calib'].serial}.mkv", dev["calib"],
-                            fps=round(cfg.fps),
-                            wired_sync_mode="MASTER" if i == 0 else "SUBORDINATE") as w:
+                            **_writer_options(cfg, i, calibration=True)) as w:
             for b, pose in enumerate(boards):
                 scene = build_scene([*statics, chair_mesh, board_mesh(spec, pose)])
                 depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
@@ -214,7 +222,8 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                 w.write(round((b + offsets[i]) * 1e6), color_jpeg=color.jpeg,
                         depth_mm=depth.depth_mm)
 
-    imu = _record_imu(out / "imu", cfg, seq, model, rng_imu)
+    imu = _record_imu(out / "imu", cfg, seq, model, rng_imu, motion_offset,
+                      float(truth.time[0]))
 
     session = {
         "name": truth.session,
@@ -249,13 +258,15 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
 
 
 def _record_imu(out: Path, cfg: SessionConfig, seq: SimulatedSequence, model: BodyModel,
-                rng: np.random.Generator) -> dict[str, Any]:
+                rng: np.random.Generator, motion_offset: float, first: float) -> dict[str, Any]:
     """Write imu/recording.mvnx, imu/xbus.bin and imu/device_map.json; return the clock and
-    error truth."""
+    error truth. The suit sees the motion from Kinect time ``first`` (the first frame) on;
+    Kinect time t shows the motion at t + ``motion_offset``."""
     out.mkdir(parents=True, exist_ok=True)
     rest_pelvis = model.rest_joints(seq.motion.betas[None])[0, 0].double().numpy()
-    dense = np.arange(0.0, cfg.duration + 0.5, 1.0 / DENSE_HZ)
-    params = motion_in_world(seq.motion, dense, seq.placement.world_from_chair, rest_pelvis)
+    dense = first + np.arange(0.0, cfg.duration + 0.5, 1.0 / DENSE_HZ)  # Kinect clock
+    params = motion_in_world(seq.motion, dense + motion_offset, seq.placement.world_from_chair,
+                             rest_pelvis)
     track = body_track_from_model(model, dense, params["global_orient"], params["body_pose"],
                                   params["transl"], seq.motion.betas)
     offset = cfg.clock_offset if cfg.clock_offset is not None else -float(

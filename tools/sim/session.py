@@ -48,6 +48,8 @@ from couch.tools.sim.scene import chair_seat_geometry, load_chair
 from couch.tools.sim.truth import ChairPlacement, ground_truth
 
 HAND_INTERACTIONS = ("right_hand", "left_hand", "both_hands")
+# Sessions shorter than this record a window (around sitting down) of a natural-length sequence.
+MIN_FULL_DURATION = 8.0
 
 
 @dataclasses.dataclass
@@ -181,15 +183,27 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
     rng_motion, rng_rig, rng_imu, rng_noise = (np.random.default_rng(s) for s in ss)
     model = load_body_model(cfg.model)
     coarse = load_body_model("couch-body-coarse")
+    # A short recording is a window of a natural-length sequence, around sitting down.
+    short = cfg.duration < MIN_FULL_DURATION
     seq = simulate_sequence(rng_motion, model, coarse, interaction=cfg.interaction,
-                            chair=cfg.chair, duration=cfg.duration)
+                            chair=cfg.chair, duration=None if short else cfg.duration)
+    offset = 0.0
+    if seq.motion.duration > cfg.duration:
+        # the hips land 60% into the recording
+        landed = next((b for p, _, b in seq.motion.phases if p == "sit"), 0.0)
+        offset = float(np.clip(landed - 0.6 * cfg.duration, 0.0,
+                               seq.motion.duration - cfg.duration))
     n = round(cfg.duration * cfg.fps)
-    times = np.arange(n) / cfg.fps
+    # The master's device clock is the Kinect clock; it was running before the recording began.
+    first = float(rng_noise.uniform(0.3, 2.0))
+    times = first + np.arange(n) / cfg.fps
     name = _session_name(cfg, seq.chair_kind, seq.motion.interaction)
-    truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=cfg.fps)
+    truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=cfg.fps,
+                         motion_offset=offset - first)
     write_processed(out / "ground_truth.h5", truth)
     save_mesh(out / "chair_scan.obj", seq.placement.scan_vertices, seq.placement.faces)
-    info = record_session(out, cfg, seq, truth, model, rng_rig, rng_imu, rng_noise, progress)
+    info = record_session(out, cfg, seq, truth, model, rng_rig, rng_imu, rng_noise,
+                          offset - first, progress)
     info.update({
         "couch_version": __version__, "session": name, "seed": cfg.seed,
         "config": dataclasses.asdict(cfg),
@@ -199,6 +213,8 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
                   "world_from_scan": seq.placement.world_from_scan.tolist(),
                   "spec": dataclasses.asdict(seq.chair.spec) if seq.chair.spec else None},
         "motion": {"interaction": seq.motion.interaction, "rejected_draws": seq.rejected,
+                   "motion_time_at_first_frame_s": offset,
+                   "kinect_time_of_first_frame_s": first,
                    "phases": [[p, round(a, 4), round(b, 4)] for p, a, b in seq.motion.phases],
                    "hand_contacts": {s: {"start": a, "end": b, "point_chair": list(map(float, p)),
                                          "part": part}

@@ -102,14 +102,16 @@ def measure_contacts(model: BodyModel, betas: np.ndarray, params: dict[str, np.n
 
 def ground_truth(session: str, motion: Motion, times: np.ndarray, chair: ChairPlacement,
                  model: BodyModel, contact_model: BodyModel | None = None,
-                 fps: float = 30.0) -> ProcessedSession:
+                 fps: float = 30.0, motion_offset: float = 0.0) -> ProcessedSession:
     """The processed-session truth of ``motion`` sampled at Kinect ``times`` (s).
 
     ``model`` (the full body) gives the joints; ``contact_model`` (default: the same; the coarse
-    model is ~10x faster and its surface is within millimetres) measures the contacts.
+    model is ~10x faster and its surface is within millimetres) measures the contacts. Kinect
+    time t shows the motion at t + ``motion_offset`` (a recording that starts mid-sequence).
     """
     rest_pelvis = model.rest_joints(motion.betas[None])[0, 0].double().numpy()
-    params = motion_in_world(motion, times, chair.world_from_chair, rest_pelvis)
+    params = motion_in_world(motion, np.asarray(times) + motion_offset, chair.world_from_chair,
+                             rest_pelvis)
     betas = torch.as_tensor(motion.betas[None], dtype=model.dtype)
     with torch.no_grad():
         joints = model(betas=betas, global_orient=params["global_orient"],
