@@ -61,15 +61,31 @@ _LOW = np.array([[r[0] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 _HIGH = np.array([[r[1] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 
 
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + 180.0) % 360.0 - 180.0
+
+
 def body_pose_euler_deg(body_pose: np.ndarray) -> np.ndarray:
     """(T,69) axis-angle body pose → (T,23,3) Euler angles (degrees) about X, Y, Z, each joint
-    decomposed in its own order (see the module docstring)."""
+    decomposed in its own order (see the module docstring).
+
+    A rotation has two Tait-Bryan decompositions, (a, b, c) and (a ± 180, ±180 − b, c ± 180);
+    the one closer to the joint's range is returned, so a legal pose never reads as a violation
+    because of the representation.
+    """
     aa = np.asarray(body_pose, dtype=np.float64).reshape(-1, 23, 3)
     out = np.empty_like(aa)
     for j, name in enumerate(JOINT_NAMES[1:]):
         order = _ORDER.get(name, "XYZ")
-        angles = Rotation.from_rotvec(aa[:, j]).as_euler(order, degrees=True)
-        out[:, j, ["XYZ".index(a) for a in order]] = angles
+        slots = ["XYZ".index(a) for a in order]
+        first = Rotation.from_rotvec(aa[:, j]).as_euler(order, degrees=True)
+        second = _wrap(np.stack([first[:, 0] + 180.0, 180.0 - first[:, 1],
+                                 first[:, 2] + 180.0], axis=1))
+        lo, hi = _LOW[j, slots], _HIGH[j, slots]
+        worse = np.maximum(np.maximum(lo - first, first - hi), 0).sum(1) > np.maximum(
+            np.maximum(lo - second, second - hi), 0).sum(1)
+        angles = np.where(worse[:, None], second, first)
+        out[:, j, slots] = angles
     return out
 
 
@@ -85,13 +101,14 @@ def clamp_to_limits(body_pose: np.ndarray) -> np.ndarray:
     Rotations already inside their ranges are returned unchanged (to float precision).
     """
     aa = np.asarray(body_pose, dtype=np.float64).reshape(-1, 23, 3)
+    euler = body_pose_euler_deg(aa)
+    clipped = np.clip(euler, _LOW, _HIGH)
     out = aa.copy()
     for j, name in enumerate(JOINT_NAMES[1:]):
-        order = _ORDER.get(name, "XYZ")
-        slots = ["XYZ".index(a) for a in order]
-        angles = Rotation.from_rotvec(aa[:, j]).as_euler(order, degrees=True)
-        clipped = np.clip(angles, _LOW[j, slots], _HIGH[j, slots])
-        moved = np.any(np.abs(clipped - angles) > 1e-9, axis=1)
+        moved = np.any(np.abs(clipped[:, j] - euler[:, j]) > 1e-9, axis=1)
         if moved.any():
-            out[moved, j] = Rotation.from_euler(order, clipped[moved], degrees=True).as_rotvec()
+            order = _ORDER.get(name, "XYZ")
+            slots = ["XYZ".index(a) for a in order]
+            out[moved, j] = Rotation.from_euler(order, clipped[moved][:, j][:, slots],
+                                                degrees=True).as_rotvec()
     return out.reshape(np.shape(body_pose))

@@ -43,6 +43,9 @@ INTERACTION_MIX = {"right_hand": 0.173, "left_hand": 0.140, "both_hands": 0.289,
                    "no_contact": 0.174, "free": 0.152, "locomotion": 0.072}
 
 DENSE_HZ = 120.0
+# How far the palm centre is held above a contact point: fingers and thumb reach a little below
+# the palm's plane, and the ground-truth contact threshold (2 cm) still counts it as touching.
+PALM_HOVER = 0.016
 J = JOINT_INDEX
 
 
@@ -542,7 +545,7 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     scene.add_triangles(o3d.core.Tensor(chair_mesh[0].astype(np.float32)),
                         o3d.core.Tensor(chair_mesh[1].astype(np.uint32)))
     flat = v.reshape(-1, 3).astype(np.float32)
-    inside = scene.compute_occupancy(o3d.core.Tensor(flat)).numpy().astype(bool)
+    inside = scene.compute_occupancy(o3d.core.Tensor(flat), nsamples=5).numpy().astype(bool)
     push_s = np.zeros((len(ts), 3))
     pts = flat[inside]
     frame = np.repeat(np.arange(len(ts)), v.shape[1])[inside]
@@ -760,12 +763,12 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             # biased towards the part's natural finger direction, which keeps it defined when
             # the forearm is along the normal
             pref = plan["fingers"]
-            along = normalize(d_low - (d_low @ nrm)[:, None] * nrm) + 0.7 * (pref - (pref @ nrm)
-                                                                           * nrm)
+            along = normalize(d_low - (d_low @ nrm)[:, None] * nrm) + 0.25 * (pref - (
+                pref @ nrm) * nrm)
             fingers = normalize(along)
             rot_c = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]), fingers,
                           np.broadcast_to(-nrm, (n, 3)))
-            wrist_c = plan["point"] + 0.012 * nrm - rot_c @ body.palm_offset[side]
+            wrist_c = plan["point"] + PALM_HOVER * nrm - rot_c @ body.palm_offset[side]
             wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None] + _hand_arc(c)
             hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
             _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
@@ -819,7 +822,9 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
                   hand_contacts=hand_contacts, phases=phases)
 
 
-_PART_WEIGHT = {"armrest": 0.6, "seat": 0.3, "back": 0.1}
+# Reaching behind to the backrest needs more shoulder and forearm rotation than the analytic arm
+# IK can pose within joint limits, so backrest palm targets are not used yet (weight 0).
+_PART_WEIGHT = {"armrest": 0.6, "seat": 0.4, "back": 0.0}
 
 
 def _contact_target(body: _Body, side: str, part: str, point: np.ndarray, normal: np.ndarray,
@@ -832,7 +837,7 @@ def _contact_target(body: _Body, side: str, part: str, point: np.ndarray, normal
         [0.0, 0.0, -1.0 if part.endswith("back") else 1.0])
     rot = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]),
                 np.broadcast_to(f_dir, (n, 3)), np.broadcast_to(-normal, (n, 3)))
-    wrist = point + 0.012 * normal - rot @ body.palm_offset[side]
+    wrist = point + PALM_HOVER * normal - rot @ body.palm_offset[side]
     return {"part": part, "point": point, "normal": normal, "wrist": wrist, "rot": rot,
             "fingers": f_dir}
 
@@ -855,7 +860,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
     end = stand[0] if stand is not None else time[-1]
     _, pos0 = upper_body(np.broadcast_to(np.eye(3), (n, 3, 3)))
     arm = sum(body.arm)
-    slack = 0.1  # what a moderate extra bend of the torso can make up
+    slack = 0.15  # what a moderate extra bend of the torso can make up
     t_first = sit[0] + 0.35 * (sit[1] - sit[0])
     windows: dict[str, list[tuple[float, float] | None]] = {}
     for side, candidates in hand_plan.items():
@@ -869,7 +874,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 wins.append(None)  # a backrest far behind the sitter is not reached for
                 continue
             # a palm where the thigh lands must be gone before the hips come down
-            last = sit[0] + 0.65 * (sit[1] - sit[0]) if under_thigh else end
+            last = sit[0] + 0.8 * (sit[1] - sit[0]) if under_thigh else end
             near = (np.linalg.norm(point - shoulder, axis=1) < 0.9 * arm + slack) & (
                 time >= t_first) & (time <= last)
             if not near.any():
@@ -878,10 +883,19 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
             first = int(np.argmax(near))
             stop = first + int(np.argmin(near[first:])) if not near[first:].all() else n - 1
             wins.append((float(time[first]), float(time[stop])) if time[stop] - time[first]
-                        > (0.3 if under_thigh else 0.6) else None)
+                        > (0.45 if under_thigh else 0.6) else None)
         windows[side] = wins
     for _attempt in range(12 if fixed is None else 1):
         plans: dict[str, tuple[dict, np.ndarray]] = {}
+        # Both hands use the same kind of part (both armrests, or the seat either side): a
+        # torso cannot lean towards an armrest on one side and the seat on the other.
+        kinds = {c[0].split("_")[1] for side in hand_plan for c, w in zip(
+            hand_plan[side], windows[side], strict=True) if w is not None}
+        shared = [k for k in sorted(kinds) if _PART_WEIGHT[k] > 0 and all(
+            any(w is not None and c[0].endswith(k) for c, w in zip(
+                hand_plan[side], windows[side], strict=True)) for side in hand_plan)]
+        kind = (str(rng.choice(shared, p=np.array([_PART_WEIGHT[k] for k in shared]) / sum(
+            _PART_WEIGHT[k] for k in shared))) if len(hand_plan) > 1 and shared else None)
         for side, candidates in hand_plan.items():
             if fixed is not None:
                 part, point, normal, t_on, t_off = fixed[side]
@@ -891,7 +905,8 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                     1 - smoothstep((time - t_off) / 0.5))
                 plans[side] = (plan, c)
                 continue
-            scores = np.array([0.0 if w is None else _PART_WEIGHT[c[0].split("_")[1]]
+            scores = np.array([0.0 if w is None or (kind and not c[0].endswith(kind))
+                               else _PART_WEIGHT[c[0].split("_")[1]]
                                for c, w in zip(candidates, windows[side], strict=True)])
             if scores.sum() <= 0:
                 raise ValueError(f"no {side}-hand palm target on this chair is within reach")
@@ -899,7 +914,8 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
             part, point, normal = candidates[k]
             win_on, win_off = windows[side][k]
             plan = _contact_target(body, side, part, point, normal, n, hips)
-            plan["t_on"] = float(win_on + rng.uniform(0.0, 0.3) * min(0.6, win_off - win_on - 0.25))
+            plan["t_on"] = float(win_on + rng.uniform(0.0, 0.3) * max(0.0, min(
+                0.6, win_off - win_on - 0.45)))
             if part.endswith("seat"):
                 # a hand on the seat supports the descent and lets go as the hips land
                 plan["t_off"] = float(min(win_off, sit[0] + rng.uniform(0.92, 1.0) * (
@@ -908,7 +924,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 hold = (seated[0] + rng.uniform(0.3, 0.7) * (seated[1] - seated[0])
                         if seated is not None else end)
                 plan["t_off"] = float(min(win_off, hold))
-            plan["t_off"] = max(plan["t_off"], plan["t_on"] + 0.25)
+            plan["t_off"] = max(plan["t_off"], plan["t_on"] + 0.45)
             c = smoothstep((time - (plan["t_on"] - 0.5)) / 0.5) * (
                 1 - smoothstep((time - plan["t_off"]) / 0.5))
             plans[side] = (plan, c)
@@ -947,7 +963,7 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 print(side, plan["part"], plan["point"].round(2), "max dist c>.5",
                       d[c > 0.95].max().round(3), "arm", round(sum(body.arm), 3),
                       "bend", bend.max().round(1))
-        if (reach_ok and bend.max() < 40) or fixed is not None:
+        if (reach_ok and bend.max() < 45) or fixed is not None:
             return plans, g, pos
     raise ValueError(f"no reachable palm targets for {sorted(hand_plan)} on this chair")
 
