@@ -23,8 +23,10 @@ from couch.atomic import atomic_path
 from couch.body import BodyModel
 from couch.capture.azure_calibration import KinectCalibration
 from couch.capture.azure_mkv import AzureMkvWriter
+from couch.capture.behave import BehaveWriter, FrameImages
 from couch.capture.charuco import BoardSpec
 from couch.capture.mvnx import write_mvnx
+from couch.capture.registration import register_depth_to_color
 from couch.capture.xbus import write_device_map
 from couch.geometry import make_transform
 from couch.schema import ProcessedSession
@@ -123,6 +125,15 @@ def _board_poses(rng: np.random.Generator, cams: list[np.ndarray], centre: np.nd
     return poses
 
 
+BEHAVE_DATE = "Date01"
+
+
+def behave_sequence_name(cfg: SessionConfig, seq: SimulatedSequence) -> str:
+    """``<Date>_<Sub>_<object>_<action>`` as BEHAVE names its sequences."""
+    return (f"{BEHAVE_DATE}_Sub{cfg.seed % 100:02d}_chair{seq.chair_kind}_"
+            f"{seq.motion.interaction.replace('_', '')}")
+
+
 def _writer_options(cfg: SessionConfig, device: int, calibration: bool = False
                     ) -> dict[str, Any]:
     """MKV writer settings: sync role, and seeded UIDs and a fixed creation date so that the
@@ -174,9 +185,19 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
               "transl": truth.transl}
     from couch.tools.sim.session import body_vertices
 
-    (out / "kinect").mkdir(parents=True, exist_ok=True)
-    writers = [AzureMkvWriter(out / "kinect" / f"{d['calib'].serial}.mkv", d["calib"],
-                              **_writer_options(cfg, i)) for i, d in enumerate(devices)]
+    frames_mode = cfg.fmt == "frames"
+    if frames_mode:
+        behave = BehaveWriter(out, behave_sequence_name(cfg, seq), BEHAVE_DATE,
+                              [d["calib"] for d in devices],
+                              [world_from_color(d["calib"], d["pose"]) for d in devices],
+                              gender="neutral", object_category=f"chair{seq.chair_kind}",
+                              betas=seq.motion.betas, jpeg_quality=cfg.jpeg_quality)
+        writers = []
+    else:
+        (out / "kinect").mkdir(parents=True, exist_ok=True)
+        writers = [AzureMkvWriter(out / "kinect" / f"{d['calib'].serial}.mkv", d["calib"],
+                                  **_writer_options(cfg, i)) for i, d in enumerate(devices)]
+    skipped_frames = []
     chunk = 16
     try:
         for a in tqdm(range(0, n, chunk), desc="rendering", unit="x16 frames",
@@ -189,19 +210,32 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                                    vertex_colors=colors, texture="fabric",
                                    texture_coords=rest, smooth=True)
                 scene = build_scene([*statics, chair_mesh, person])
-                for dev, writer in zip(devices, writers, strict=True):
+                if frames_mode and any(k in d["dropped"] for d in devices):
+                    # BEHAVE keeps only frames every camera delivered (its sync step drops the
+                    # rest), so a drop in one camera loses the frame
+                    skipped_frames.append(k)
+                    continue
+                images = []
+                for i, dev in enumerate(devices):
                     if k in dev["dropped"]:
                         continue
                     depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
                     color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
                                          cfg.jpeg_quality)
-                    writer.write(int(dev["stamps"][k]), color_jpeg=color.jpeg,
-                                 depth_mm=depth.depth_mm)
+                    if frames_mode:
+                        images.append(FrameImages(
+                            color.rgb, register_depth_to_color(depth.depth_mm, dev["calib"]),
+                            color.person_mask, color.chair_mask))
+                    else:
+                        writers[i].write(int(dev["stamps"][k]), color_jpeg=color.jpeg,
+                                         depth_mm=depth.depth_mm)
                     if cfg.masks:
                         path = out / "masks" / dev["calib"].serial / f"{k:05d}.png"
                         path.parent.mkdir(parents=True, exist_ok=True)
                         with atomic_path(path) as tmp:
                             cv2.imwrite(str(tmp), color.person_mask.astype(np.uint8) * 255)
+                if frames_mode:
+                    behave.write_frame(float(truth.time[k]), images)
     finally:
         for writer in writers:
             writer.close()
@@ -227,7 +261,10 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
 
     session = {
         "name": truth.session,
-        "kinect": [{"serial": d["calib"].serial, "file": f"kinect/{d['calib'].serial}.mkv",
+        "format": cfg.fmt,
+        "behave_sequence": behave_sequence_name(cfg, seq) if frames_mode else None,
+        "kinect": [{"serial": d["calib"].serial,
+                    "file": None if frames_mode else f"kinect/{d['calib'].serial}.mkv",
                     "calibration_capture": f"calibration/{d['calib'].serial}.mkv",
                     "sync": "MASTER" if i == 0 else "SUBORDINATE"}
                    for i, d in enumerate(devices)],
@@ -246,6 +283,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
             "timestamp_jitter_us_std": 40.0,
             "dropped_frames": sorted(d["dropped"]),
         } for i, d in enumerate(devices)],
+        "frames_not_written": skipped_frames,
         "kinect_time_of_frame": "frame k is captured at k / fps s on the master clock; device "
                                 "timestamp = that + device_clock_offset_s + jitter",
         "board_poses_world_from_board": [p.tolist() for p in boards],

@@ -64,7 +64,7 @@ class SessionConfig:
     clock_offset: float | None = None  # s: IMU clock reading at Kinect time 0 (None: random)
     drift_ppm: float = 40.0  # IMU clock rate error against the Kinect clock
     drop_rate: float = 0.0  # probability that a camera drops a frame
-    fmt: str = "mkv"
+    fmt: str = "mkv"  # or "frames": BEHAVE-style per-frame folders
     seed: int = 0
     masks: bool = False
     fps: float = 30.0  # an Azure Kinect rate: 5, 15 or 30
@@ -175,8 +175,8 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
     """Write one full session (see the module docstring); returns the truth.json content."""
     from couch.tools.sim.recording import record_session  # rendering needs the camera stack
 
-    if cfg.fmt not in ("mkv",):
-        raise ValueError(f"--format {cfg.fmt!r} is not supported yet (available: mkv)")
+    if cfg.fmt not in ("mkv", "frames"):
+        raise ValueError(f"--format must be mkv or frames, got {cfg.fmt!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ss = np.random.SeedSequence(cfg.seed).spawn(4)
@@ -253,7 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drift-ppm", type=float, default=d.drift_ppm)
     ap.add_argument("--drop-rate", type=float, default=d.drop_rate,
                     help="probability that a camera drops a frame")
-    ap.add_argument("--format", dest="fmt", choices=["mkv"], default=d.fmt)
+    ap.add_argument("--format", dest="fmt", choices=["mkv", "frames"], default=d.fmt,
+                    help="mkv: one Azure Kinect recording per camera; frames: BEHAVE-style "
+                         "per-frame folders (colour JPEG, depth registered to colour, masks)")
     ap.add_argument("--fps", type=float, choices=[5.0, 15.0, 30.0], default=d.fps,
                     help="Kinect frame rate")
     ap.add_argument("--depth-mode", choices=["NFOV_UNBINNED", "NFOV_2X2BINNED"],
