@@ -92,3 +92,14 @@ def look_at(eye: np.ndarray, target: np.ndarray,
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     return make_transform(np.stack([right, down, forward], axis=1), eye)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(…,V,3) area-weighted unit vertex normals of meshes sharing ``faces`` (F,3)."""
+    tri = vertices[..., faces, :]
+    fn = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        # np.add.at over the vertex axis, batched over any leading axes
+        np.add.at(vn, (..., faces[:, k], slice(None)), fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-12)

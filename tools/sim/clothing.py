@@ -15,6 +15,7 @@ import dataclasses
 import numpy as np
 
 from couch.body import JOINT_INDEX, BodyModel
+from couch.geometry import vertex_normals
 
 # Looseness (0..1) of clothing per dominant joint: 1 = loosest (3 cm), 0 = skin.
 _LOOSENESS = {
@@ -40,17 +41,6 @@ class Clothing:
     fold_joint: np.ndarray
     hand_scale: float
     foot_scale: float
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(…,V,3) area-weighted unit vertex normals of meshes sharing ``faces`` (F,3)."""
-    tri = vertices[..., faces, :]
-    fn = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        # np.add.at over the vertex axis, batched over any leading axes
-        np.add.at(vn, (..., faces[:, k], slice(None)), fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-12)
 
 
 def _smooth_field(points: np.ndarray, rng: np.random.Generator, wavelengths=(0.12, 0.35),

@@ -41,7 +41,8 @@ from scipy.spatial.transform import Rotation
 
 from couch.capture.azure_calibration import CameraIntrinsics, KinectCalibration
 from couch.capture.charuco import BoardSpec, board_image
-from couch.geometry import invert_transform, look_at, make_transform
+from couch.capture.registration import UNDISTORT_CRITERIA
+from couch.geometry import invert_transform, look_at, make_transform, vertex_normals
 
 __all__ = [
     "LABEL_BACKGROUND",
@@ -78,11 +79,6 @@ LABEL_BOARD = 3
 
 #: Procedural texture kinds of :attr:`SceneMesh.texture` (index 0 = none).
 TEXTURES = (None, "wood", "fabric", "floor")
-
-# Convergence of cv2.undistortPoints: its default (5 iterations) leaves up to ~3 px of error in the
-# corners of a Kinect depth image, whose rational lens bends the corners by ~100 px.
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-13)
-
 
 # --------------------------------------------------------------------------------------------
 # Scene description
@@ -214,7 +210,7 @@ def build_scene(meshes: list[SceneMesh]) -> SimScene:
         coords.append(m.vertices if m.texture_coords is None
                       else np.asarray(m.texture_coords, dtype=np.float64))
         own.append(np.full(len(m.faces), m.texture_coords is not None))
-        normals.append(_vertex_normals(m.vertices, m.faces) if m.smooth
+        normals.append(vertex_normals(m.vertices, m.faces).astype(np.float32) if m.smooth
                        else np.zeros((len(m.vertices), 3), np.float32))
         smooth.append(np.full(len(m.faces), m.smooth))
 
@@ -229,15 +225,6 @@ def build_scene(meshes: list[SceneMesh]) -> SimScene:
         face_own_coords=cat(own, (0,), bool),
         vertex_normals=cat(normals, (0, 3), np.float32), face_smooth=cat(smooth, (0,), bool),
         mesh_label=np.array([m.label for m in meshes], dtype=np.int8))
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """(V, 3) float32 area-weighted unit vertex normals."""
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
 
 
 def board_mesh(spec: BoardSpec, world_from_board: np.ndarray, thickness: float = 0.005,
@@ -436,7 +423,7 @@ def _grid_cached(width: int, height: int, fx: float, fy: float, cx: float, cy: f
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     pix = np.stack([u, v], axis=-1).reshape(-1, 1, 2)
     k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    xy = cv2.undistortPoints(pix, k, np.asarray(dist), None, None, None, _UNDISTORT_CRITERIA)
+    xy = cv2.undistortPoints(pix, k, np.asarray(dist), None, None, None, UNDISTORT_CRITERIA)
     xy = xy.reshape(height, width, 2)
     xy1 = np.concatenate([xy, np.ones((height, width, 1))], axis=-1).astype(np.float32)
     inv_norm = (1.0 / np.linalg.norm(xy1, axis=-1)).astype(np.float32)
