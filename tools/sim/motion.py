@@ -15,7 +15,6 @@ are 0 (locomotion) while walking and the sequence's type from the turn at the ch
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 import torch
@@ -24,7 +23,6 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from couch.body import JOINT_INDEX, BodyModel, sitting_pose
 from couch.body.limits import clamp_to_limits
-from couch.rotations import matrix_to_axis_angle
 from couch.tools.sim.ik import (
     Skeleton,
     align,
@@ -957,12 +955,6 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
         reach_ok = all(
             np.all(np.linalg.norm(plan["wrist"] - pos[J[f"{side}_shoulder"]], axis=1)[c > 0.95]
                    < 0.995 * sum(body.arm)) for side, (plan, c) in plans.items())
-        if os.environ.get("COUCH_DEBUG_CONTACTS"):
-            for side, (plan, c) in plans.items():
-                d = np.linalg.norm(plan["wrist"] - pos[J[f"{side}_shoulder"]], axis=1)
-                print(side, plan["part"], plan["point"].round(2), "max dist c>.5",
-                      d[c > 0.95].max().round(3), "arm", round(sum(body.arm), 3),
-                      "bend", bend.max().round(1))
         if (reach_ok and bend.max() < 45) or fixed is not None:
             return plans, g, pos
     raise ValueError(f"no reachable palm targets for {sorted(hand_plan)} on this chair")
@@ -1000,14 +992,7 @@ def _arm_swing(time: np.ndarray, heading: np.ndarray, moving: np.ndarray, step_r
     return out
 
 
-def motion_to_arrays(motion: Motion, times: np.ndarray) -> dict[str, np.ndarray]:
-    """Schema-shaped arrays at ``times``: global_orient (N,3), body_pose (N,69), transl (N,3),
-    labels (N,), in the chair frame."""
-    go, bp, tr, lab = motion.sample(times)
-    return {"global_orient": go, "body_pose": bp, "transl": tr, "labels": lab}
-
-
 __all__ = [
-    "INTERACTION_LABEL", "INTERACTION_MIX", "Motion", "MotionConfig", "SeatGeometry",
-    "generate_motion", "matrix_to_axis_angle", "motion_to_arrays", "sample_interaction",
+    "DENSE_HZ", "INTERACTION_LABEL", "INTERACTION_MIX", "Motion", "MotionConfig", "MotionRejected",
+    "SeatGeometry", "generate_motion", "max_penetration", "sample_interaction",
 ]

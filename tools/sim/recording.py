@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from couch.atomic import atomic_path
@@ -183,8 +184,6 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
     rest = model(betas=seq.motion.betas[None]).vertices[0].detach().double().numpy()
     params = {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
               "transl": truth.transl}
-    from couch.tools.sim.session import body_vertices
-
     frames_mode = cfg.fmt == "frames"
     if frames_mode:
         behave = BehaveWriter(out, behave_sequence_name(cfg, seq), BEHAVE_DATE,
@@ -284,8 +283,9 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
             "dropped_frames": sorted(d["dropped"]),
         } for i, d in enumerate(devices)],
         "frames_not_written": skipped_frames,
-        "kinect_time_of_frame": "frame k is captured at k / fps s on the master clock; device "
-                                "timestamp = that + device_clock_offset_s + jitter",
+        "kinect_time_of_frame": "frame k is captured at ground_truth.h5 /time[k] (the master "
+                                "clock); device timestamp = that + device_clock_offset_s + "
+                                "jitter",
         "board_poses_world_from_board": [p.tolist() for p in boards],
         "light": dataclasses.asdict(light),
         "depth_noise": dataclasses.asdict(noise),
@@ -293,6 +293,15 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
         "clothing": {"hand_scale": clothing.hand_scale, "foot_scale": clothing.foot_scale,
                      "max_offset_m": float(np.linalg.norm(clothing.rest_offset, axis=1).max())},
     }
+
+
+def body_vertices(model: BodyModel, betas: np.ndarray, params: dict[str, np.ndarray],
+                  frames: slice) -> tuple[np.ndarray, np.ndarray]:
+    """Posed vertices (T,V,3) and joint transforms (T,24,4,4) of ``frames`` of ``params``."""
+    with torch.no_grad():
+        out = model(betas=betas[None], global_orient=params["global_orient"][frames],
+                    body_pose=params["body_pose"][frames], transl=params["transl"][frames])
+    return out.vertices.double().numpy(), out.joint_transforms.double().numpy()
 
 
 def _record_imu(out: Path, cfg: SessionConfig, seq: SimulatedSequence, model: BodyModel,

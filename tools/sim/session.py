@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from couch import __version__
@@ -225,15 +224,6 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
     return info
 
 
-def body_vertices(model: BodyModel, betas: np.ndarray, params: dict[str, np.ndarray],
-                  frames: slice) -> tuple[np.ndarray, np.ndarray]:
-    """Posed vertices (T,V,3) and joint transforms (T,24,4,4) of ``frames`` of ``params``."""
-    with torch.no_grad():
-        out = model(betas=betas[None], global_orient=params["global_orient"][frames],
-                    body_pose=params["body_pose"][frames], transl=params["transl"][frames])
-    return out.vertices.double().numpy(), out.joint_transforms.double().numpy()
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="couch-simulate", description=__doc__.split("\n\n")[0],
@@ -290,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["HAND_INTERACTIONS", "SessionConfig", "SimulatedSequence", "body_vertices",
+__all__ = ["HAND_INTERACTIONS", "SessionConfig", "SimulatedSequence",
            "main", "simulate_motion_dataset", "simulate_sequence", "simulate_session"]
 
 

@@ -16,6 +16,7 @@ import torch
 from couch import __version__
 from couch.body import CONTACT_NAMES, BodyModel
 from couch.geometry import apply_transform, invert_transform
+from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from couch.schema import ProcessedSession
 from couch.tools.sim.motion import Motion
 
@@ -56,8 +57,6 @@ def motion_in_world(motion: Motion, times: np.ndarray, world_from_chair: np.ndar
     (R, t) of the body maps transl to R·(transl + J0) + t − J0.
     """
     go, bp, tr, labels = motion.sample(times)
-    from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
     rot = world_from_chair[:3, :3]
     go_w = matrix_to_axis_angle(rot @ axis_angle_to_matrix(go.astype(np.float64)))
     tr_w = (tr + rest_pelvis) @ rot.T + world_from_chair[:3, 3] - rest_pelvis
