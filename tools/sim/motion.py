@@ -58,10 +58,8 @@ class SeatGeometry:
     seat_height: float
     seat_center: np.ndarray
     seat_front_z: float
-    seat_width: float
     back_front_z: float | None
     half_width: float
-    back_z: float
     hand_targets: dict[str, list[tuple[np.ndarray, np.ndarray]]]
 
 
@@ -165,9 +163,6 @@ class Timeline:
             if s.foot == foot:
                 return s.to
         return self.start[foot]
-
-    def end_time(self) -> float:
-        return max((s.end for s in self.steps), default=0.0)
 
     def feet(self, t: np.ndarray, clearance: float) -> tuple[np.ndarray, np.ndarray]:
         """Ankle positions (2,T,3) and foot headings (2,T) at times ``t``."""
@@ -716,7 +711,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
         g[J[f"{side}_foot"]] = g[J[f"{side}_ankle"]]
 
     # Arms: a walking swing (procedural), or IK to the thighs / the chair when sitting.
-    local_proc = _arm_swing(time, heading, moving, step_rate, tl)
+    local_proc = _arm_swing(time, moving, step_rate)
     hand_contacts: dict[str, tuple[float, float, np.ndarray, str]] = {}
     ik_w = {s: np.zeros(n) for s in ("left", "right")}
     contact_info: dict[str, tuple[dict, np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -974,11 +969,10 @@ def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (ra * Rotation.from_rotvec(delta * np.clip(w, 0, 1)[:, None])).as_matrix()
 
 
-def _arm_swing(time: np.ndarray, heading: np.ndarray, moving: np.ndarray, step_rate: float,
-               tl: Timeline) -> dict[int, np.ndarray]:
+def _arm_swing(time: np.ndarray, moving: np.ndarray, step_rate: float
+               ) -> dict[int, np.ndarray]:
     """Local rotations of shoulders, elbows and wrists for relaxed arms swinging against the
     legs: each arm swings forward as the opposite foot does."""
-    del heading, tl
     n = len(time)
     swing = np.deg2rad(18) * moving * np.sin(np.pi * step_rate * time)
     out = {}

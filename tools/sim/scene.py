@@ -92,10 +92,9 @@ def chair_seat_geometry(vertices: np.ndarray, faces: np.ndarray,
             targets.setdefault(key, []).append((c.point, c.normal))
     return SeatGeometry(
         seat_height=float(lm.seat_height), seat_center=np.asarray(lm.seat_center, float),
-        seat_front_z=float(lm.seat_front[2]), seat_width=float(lm.seat_width),
+        seat_front_z=float(lm.seat_front[2]),
         back_front_z=_backrest_front_at_seat(vertices, faces, lm),
-        half_width=float(np.abs(vertices[:, 0]).max()), back_z=float(vertices[:, 2].min()),
-        hand_targets=targets)
+        half_width=float(np.abs(vertices[:, 0]).max()), hand_targets=targets)
 
 
 def load_chair(path: str) -> Chair:
