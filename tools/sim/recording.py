@@ -103,17 +103,23 @@ def person_colors(model: BodyModel, rng: np.random.Generator) -> np.ndarray:
 
 def _board_poses(rng: np.random.Generator, cams: list[np.ndarray], centre: np.ndarray,
                  count: int, spec: BoardSpec) -> list[np.ndarray]:
-    """World-from-board poses held up around ``centre``, each facing one camera (in turn) with
-    some tilt, so every camera sees the board several times."""
+    """World-from-board poses held up around ``centre``, each facing between two neighbouring
+    cameras in turn (with some tilt), so that pairs of cameras see the same board and the
+    calibration can link every camera to the others."""
     poses = []
     w, h = spec.size
+    # neighbours around the rig, by azimuth about the centre
+    order = np.argsort([np.arctan2(c[0, 3] - centre[0], c[2, 3] - centre[2]) for c in cams])
     for k in range(count):
-        cam = cams[k % len(cams)][:3, 3]
-        pos = centre + np.array([rng.uniform(-0.4, 0.4), rng.uniform(0.2, 0.7),
-                                 rng.uniform(-0.4, 0.4)])
+        a, b = order[k % len(cams)], order[(k + 1) % len(cams)]
+        cam = 0.5 * (cams[a][:3, 3] + cams[b][:3, 3])
+        pos = centre + np.array([rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.6),
+                                 rng.uniform(-0.2, 0.2)])
+        toward = (cam - pos) * np.array([1.0, 0.0, 1.0])
+        pos = pos + 0.6 * toward / np.linalg.norm(toward)  # held out towards the pair
         face = cam - pos
         face /= np.linalg.norm(face)
-        tilt = rng.normal(0, 0.25, 3)
+        tilt = rng.normal(0, 0.1, 3)
         face = face + tilt - (tilt @ face) * face
         face /= np.linalg.norm(face)
         # board +Z points into the board: away from the camera; +Y (down the columns) ≈ down
