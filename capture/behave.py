@@ -650,13 +650,18 @@ def _decode(data: bytes, flags: int, path: Path) -> np.ndarray:
     return img
 
 
-def _read_color(path: Path) -> np.ndarray:
+def _read_image_bytes(path: Path) -> bytes:
+    """The file's bytes, after checking its PNG header or that its JPEG is complete."""
     data = _read_file(path)
     if path.suffix.lower() == ".png":
         _png_header(data, path)
     else:
         _jpeg_complete(data, path)
-    bgr = _decode(data, cv2.IMREAD_COLOR, path)
+    return data
+
+
+def _read_color(path: Path) -> np.ndarray:
+    bgr = _decode(_read_image_bytes(path), cv2.IMREAD_COLOR, path)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -675,12 +680,7 @@ def _read_depth(path: Path) -> np.ndarray:
 
 
 def _read_mask(path: Path) -> np.ndarray:
-    data = _read_file(path)
-    if path.suffix.lower() == ".png":
-        _png_header(data, path)
-    else:
-        _jpeg_complete(data, path)
-    return _decode(data, cv2.IMREAD_GRAYSCALE, path) > 127
+    return _decode(_read_image_bytes(path), cv2.IMREAD_GRAYSCALE, path) > 127
 
 
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:

@@ -17,8 +17,9 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import open3d as o3d
 import torch
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
 from couch.body import JOINT_INDEX, BodyModel, sitting_pose
@@ -33,6 +34,7 @@ from couch.tools.sim.ik import (
     two_bone_ik,
     yaw_matrix,
 )
+from couch.tools.sim.quality import penetration_depth
 
 # Schema labels (DESIGN.md /labels/interaction) and the COUCH dataset's proportions.
 INTERACTION_LABEL = {"locomotion": 0, "right_hand": 1, "left_hand": 2, "both_hands": 3,
@@ -505,8 +507,6 @@ class MotionRejected(ValueError):
 def max_penetration(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
                     hz: float = 30.0) -> float:
     """Deepest penetration (m) of the body into the chair over the sequence, sampled at ``hz``."""
-    from couch.tools.sim.quality import penetration_depth
-
     ts = np.arange(0.0, motion.duration, 1.0 / hz)
     go, bp, tr, _ = motion.sample(ts)
     with torch.no_grad():
@@ -525,8 +525,6 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     the backrest; the ray's exit distance is how far it must move (the nearest-surface normal
     of a thin seat can point down, through the bottom).
     """
-    import open3d as o3d
-
     spans = [(a, b) for name, a, b in phases if name in ("turn", "sit", "seated", "stand")]
     t0, t1 = min(a for a, _ in spans), max(b for _, b in spans)
     ts = np.arange(t0, t1, 1 / 15.0)
@@ -571,8 +569,6 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     push = np.stack([np.interp(motion.time, ts, push_s[:, k], left=0, right=0)
                      for k in range(3)], -1)
     # widen, then smooth, so the correction ramps in and out instead of popping
-    from scipy.ndimage import maximum_filter1d
-
     # keep the larger of lifting and lowering, not their average
     up = maximum_filter1d(np.maximum(push, 0), int(0.2 * DENSE_HZ), axis=0)
     dn = -maximum_filter1d(np.maximum(-push, 0), int(0.2 * DENSE_HZ), axis=0)

@@ -43,6 +43,7 @@ from couch.tools.sim.motion import (
     generate_motion,
     sample_interaction,
 )
+from couch.tools.sim.recording import record_session
 from couch.tools.sim.scene import chair_seat_geometry, load_chair
 from couch.tools.sim.truth import ChairPlacement, ground_truth
 
@@ -172,8 +173,6 @@ def _session_name(cfg: SessionConfig, kind: str, interaction: str) -> str:
 def simulate_session(out_dir: str | Path, cfg: SessionConfig,
                      progress: bool = True) -> dict[str, Any]:
     """Write one full session (see the module docstring); returns the truth.json content."""
-    from couch.tools.sim.recording import record_session  # rendering needs the camera stack
-
     if cfg.fmt not in ("mkv", "frames"):
         raise ValueError(f"--format must be mkv or frames, got {cfg.fmt!r}")
     out = Path(out_dir)
