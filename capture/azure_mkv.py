@@ -865,9 +865,12 @@ class AzureMkvRecording:
 
         self._segment_start = pos + slen
         self._segment_end = size if ssize == _UNKNOWN_SIZE else self._segment_start + ssize
+        self._segment_truncated: str | None = None
         if self._segment_end > size:
-            self.warnings.append(f"{self.path}: Segment declares {ssize} bytes but the file ends "
-                                 f"{self._segment_end - size} bytes early (truncated)")
+            self._segment_truncated = (f"{self.path}: Segment declares {ssize} bytes but the "
+                                       f"file ends {self._segment_end - size} bytes early "
+                                       f"(truncated)")
+            self.warnings.append(self._segment_truncated)
             self._segment_end = size
         self._elements: dict[int, bytes] = {}
         seek_heads: list[bytes] = []
@@ -1225,6 +1228,10 @@ class AzureMkvRecording:
                            f"file ends at byte {size}; frames after that are missing")
                 return
             pos = cend
+        if self._segment_truncated is not None and self.strict:
+            # Cut at an element boundary: nothing is cut off mid-block, but what followed (more
+            # clusters, or only the Cues) is gone. Listed in warnings at open; strict raises.
+            raise KinectFormatError(f"{self._segment_truncated}; no data after byte {size}")
 
     def _unknown_cluster_end(self, f: BinaryIO, pos: int, end: int) -> int:
         """End of an unknown-size cluster: where the next top-level element starts."""

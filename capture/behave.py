@@ -9,6 +9,9 @@ Public API
   (one frame in memory at a time). SMPL-H / object fits are loaded lazily through
   :meth:`BehaveFrame.person_fit` / :meth:`BehaveFrame.object_fit` with the restricted unpickler.
 * :class:`FrameImages` — one camera's images of one frame.
+* :meth:`BehaveSequence.iter_camera` -> :class:`CameraFrame`: one camera's colour (still encoded,
+  decoded on demand) and depth per frame, each usable on its own (what
+  :func:`couch.capture.frames.open_kinect_stream` reads).
 * :func:`frame_name` / :func:`parse_frame_name` — time in seconds <-> ``t0003.000``.
 * :class:`BehaveFormatError` (a ``ValueError``) for unreadable input; :class:`BehaveSkip` for what
   a reader skipped (``BehaveSequence.skipped``).
@@ -99,6 +102,8 @@ the colour image raise :class:`BehaveFormatError` naming the file. Where the res
 frame is skipped, counted and reported in ``BehaveSequence.skipped`` (``strict=True`` raises
 instead): a folder whose name is not ``t%04d.%03d``, a frame with a missing, truncated or
 undecodable colour/depth image, a corrupt mask (the frame is kept without that mask).
+:meth:`BehaveSequence.iter_camera` (one camera, for :mod:`couch.capture.frames`) drops only the
+damaged image of a frame, as a Kinect capture does, and skips the frame when neither is usable.
 """
 
 from __future__ import annotations
@@ -127,6 +132,7 @@ from .azure_calibration import (
     CameraIntrinsics,
     KinectCalibration,
 )
+from .azure_mkv import _jpeg_size
 from .registration import pixel_rays
 
 __all__ = [
@@ -138,6 +144,7 @@ __all__ = [
     "BehaveSequence",
     "BehaveSkip",
     "BehaveWriter",
+    "CameraFrame",
     "FrameImages",
     "frame_name",
     "open_behave_sequence",
@@ -660,8 +667,34 @@ def _read_image_bytes(path: Path) -> bytes:
     return data
 
 
-def _read_color(path: Path) -> np.ndarray:
-    bgr = _decode(_read_image_bytes(path), cv2.IMREAD_COLOR, path)
+def _image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's frame header, without decoding."""
+    if data[:8] == _PNG_SIGNATURE and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return _jpeg_size(data)
+
+
+def _read_color_bytes(path: Path, calib: KinectCalibration, camera: Path) -> bytes:
+    """A colour image's bytes, checked complete and of the calibration's size (not decoded).
+
+    Raises _Unusable (missing, cut off, no image header) or BehaveFormatError (wrong size: the
+    calibration in ``camera`` does not describe this image)."""
+    data = _read_image_bytes(path)
+    size = _image_size(data)
+    if size is None:
+        raise _Unusable(path, "not an image (no PNG IHDR or JPEG frame header)")
+    w, h = calib.color.width, calib.color.height
+    if size != (w, h):
+        raise BehaveFormatError(f"{path}: colour image is {size[0]}x{size[1]}, calibration "
+                                f"{camera} is for {w}x{h}")
+    return data
+
+
+def _decode_color(data: bytes, path: Path) -> np.ndarray:
+    """Encoded colour image -> (H,W,3) uint8 RGB; _Unusable naming ``path`` if undecodable."""
+    bgr = _decode(data, cv2.IMREAD_COLOR, path)
+    if bgr.ndim != 3 or bgr.shape[2] != 3:
+        raise _Unusable(path, f"colour image decoded as {bgr.shape}, expected (H, W, 3)")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -753,6 +786,39 @@ def _load_fit(path: Path) -> dict[str, Any] | None:
         raise BehaveFormatError(f"{path}: fit pickle holds a {type(fit).__name__}, expected a "
                                 "dict of arrays")
     return fit
+
+
+@dataclass
+class CameraFrame:
+    """One camera's images of one frame as :meth:`BehaveSequence.iter_camera` streams them.
+
+    Attributes:
+        index: position of the frame in ``BehaveSequence.frame_names``.
+        name: frame folder name (``t0003.000``); ``time_s`` its time in seconds.
+        kinect: the camera's file id.
+        color_path: the colour file (``k<k>.color.jpg``/``.png``), None if unusable.
+        color_data: its bytes (complete, of the calibration's size; not yet decoded), or None.
+        depth_mm: (H,W) uint16 colour-camera Z in millimetres, 0 = invalid (registered to the
+            colour image, colour size), or None if missing/damaged.
+    """
+
+    index: int
+    name: str
+    time_s: float
+    kinect: int
+    color_path: Path | None
+    color_data: bytes | None
+    depth_mm: np.ndarray | None
+
+    def color_rgb(self) -> np.ndarray | None:
+        """The colour image decoded: (H,W,3) uint8 RGB, or None if the frame has none.
+
+        Raises:
+            BehaveFormatError: naming the file, if it cannot be decoded.
+        """
+        if self.color_data is None or self.color_path is None:
+            return None
+        return _decode_color(self.color_data, self.color_path)
 
 
 class BehaveSequence:
@@ -887,24 +953,32 @@ class BehaveSequence:
                 f"frames={len(self)}, category={self.category!r})")
 
     # ---------------------------------------------------------------- frames
+    def _color_bytes(self, folder: Path, k: int) -> tuple[Path, bytes]:
+        """Camera ``k``'s colour file in ``folder`` and its checked bytes (not decoded)."""
+        cpath = _first_existing(folder, [f"k{k}.color.jpg", f"k{k}.color.png"])
+        if cpath is None:
+            raise _Unusable(folder / f"k{k}.color.jpg", "missing")
+        camera = self.intrinsics_path / str(k)
+        return cpath, _read_color_bytes(cpath, self.calibrations[k], camera)
+
+    def _depth(self, folder: Path, k: int) -> np.ndarray:
+        """Camera ``k``'s registered depth in ``folder``, checked against the colour size."""
+        dpath = folder / f"k{k}.depth.png"
+        depth = _read_depth(dpath)
+        h, w = self.calibrations[k].color.height, self.calibrations[k].color.width
+        if depth.shape != (h, w):
+            raise BehaveFormatError(f"{dpath}: depth is {depth.shape[1]}x{depth.shape[0]}, "
+                                    f"expected {w}x{h} (registered to the colour image)")
+        return depth
+
     def _read_frame(self, name: str, skipped: list[BehaveSkip]) -> BehaveFrame:
         folder = self.path / name
         images = []
         for k, calib in zip(self.kinects, self.calibrations, strict=True):
-            cpath = _first_existing(folder, [f"k{k}.color.jpg", f"k{k}.color.png"])
-            if cpath is None:
-                raise _Unusable(folder / f"k{k}.color.jpg", "missing")
-            color = _read_color(cpath)
+            cpath, data = self._color_bytes(folder, k)
+            color = _decode_color(data, cpath)
+            depth = self._depth(folder, k)
             h, w = calib.color.height, calib.color.width
-            if color.shape != (h, w, 3):
-                raise BehaveFormatError(f"{cpath}: colour image is {color.shape[1]}x"
-                                        f"{color.shape[0]}, calibration "
-                                        f"{self.intrinsics_path / str(k)} is for {w}x{h}")
-            dpath = folder / f"k{k}.depth.png"
-            depth = _read_depth(dpath)
-            if depth.shape != (h, w):
-                raise BehaveFormatError(f"{dpath}: depth is {depth.shape[1]}x{depth.shape[0]}, "
-                                        f"expected {w}x{h} (registered to the colour image)")
             masks: list[np.ndarray | None] = []
             for candidates in ([f"k{k}.person_mask.png", f"k{k}.person_mask.jpg"],
                                [f"k{k}.obj_rend_mask.png", f"k{k}.obj_mask.png",
@@ -951,6 +1025,50 @@ class BehaveSequence:
                 self.skipped.append(BehaveSkip(name, exc.path, f"frame skipped: {exc.reason}"))
                 continue
             yield frame
+
+
+    def iter_camera(self, kinect: int) -> Iterator[CameraFrame]:
+        """Stream one camera's colour and depth, frame by frame (masks and fits are not read).
+
+        Unlike :meth:`__iter__`, a frame's colour and depth are usable independently, as the
+        images of a Kinect capture are: a missing or damaged one is recorded in :attr:`skipped`
+        (reset when the iteration starts) and the frame comes with that image None; a frame
+        with neither is skipped. The colour image is checked (complete file, size from its
+        header) but decoded only by :meth:`CameraFrame.color_rgb`. ``strict`` raises instead.
+
+        Args:
+            kinect: the camera's file id (``k0`` -> 0), one of :attr:`kinects`.
+
+        Raises:
+            BehaveFormatError: an image of the wrong size or a depth PNG that is not 16-bit
+                grey (the sequence is inconsistent, not merely damaged), or strict mode.
+            ValueError: ``kinect`` is not one of :attr:`kinects`.
+        """
+        if kinect not in self.kinects:
+            raise ValueError(f"{self.path}: no camera k{kinect} (cameras: "
+                             f"{', '.join(f'k{k}' for k in self.kinects)})")
+        self.skipped = list(self._open_skips)
+        for index, name in enumerate(self.frame_names):
+            folder = self.path / name
+            cpath: Path | None = None
+            data: bytes | None = None
+            depth: np.ndarray | None = None
+            try:
+                cpath, data = self._color_bytes(folder, kinect)
+            except _Unusable as exc:
+                if self.strict:
+                    raise
+                self.skipped.append(BehaveSkip(name, exc.path, f"colour dropped: {exc.reason}"))
+            try:
+                depth = self._depth(folder, kinect)
+            except _Unusable as exc:
+                if self.strict:
+                    raise
+                self.skipped.append(BehaveSkip(name, exc.path, f"depth dropped: {exc.reason}"))
+            if data is None and depth is None:
+                continue
+            yield CameraFrame(index=index, name=name, time_s=self._times[name], kinect=kinect,
+                              color_path=cpath, color_data=data, depth_mm=depth)
 
 
 def open_behave_sequence(path: str | os.PathLike, *, strict: bool = False) -> BehaveSequence:

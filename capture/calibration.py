@@ -58,8 +58,9 @@ from couch.atomic import atomic_path
 from couch.geometry import average_transforms, invert_transform, make_transform
 
 from .azure_calibration import KinectCalibration
-from .azure_mkv import KinectFormatError, decode_color, open_azure_mkv
+from .azure_mkv import KinectFormatError, open_azure_mkv
 from .charuco import BoardSpec, board_corners_3d, camera_from_board, detect_board
+from .frames import FrameSkip, open_kinect_stream
 from .registration import depth_to_points, project_points
 
 __all__ = [
@@ -118,6 +119,9 @@ class BoardObservations:
         views: every (camera, frame) in which corners were detected.
         frames_total: serial -> number of captures read from its recording.
         sources: serial -> the recording the views came from.
+        skipped: serial -> frames (or images) of its capture that could not be read: a colour
+            frame that does not decode, a damaged stretch of the file (see
+            :class:`couch.capture.frames.FrameSkip`).
     """
 
     spec: BoardSpec
@@ -126,6 +130,7 @@ class BoardObservations:
     views: list[BoardView]
     frames_total: dict[str, int]
     sources: dict[str, Path] = field(default_factory=dict)
+    skipped: dict[str, list[FrameSkip]] = field(default_factory=dict)
 
     def frames_seen(self, min_corners: int = 6) -> dict[str, int]:
         """serial -> number of frames in which the camera saw >= ``min_corners`` corners."""
@@ -174,36 +179,38 @@ def detect_boards(recording_paths: Sequence[str | os.PathLike] | Mapping[str, st
     views: list[BoardView] = []
     totals: dict[str, int] = {}
     sources: dict[str, Path] = {}
+    skipped: dict[str, list[FrameSkip]] = {}
     for given, p in items:
         path = Path(p)
-        rec = open_azure_mkv(path)
-        if "COLOR" not in rec.tracks:
+        stream = open_kinect_stream(path)
+        if stream.kind == "mkv" and "COLOR" not in stream.reader.tracks:
             raise KinectFormatError(f"{path}: calibration capture has no COLOR track; the "
                                     f"board is detected in the colour images")
-        serial = str(given) if given is not None else _serial_of(rec, path)
+        serial = str(given) if given is not None else _serial_of(stream.reader, path)
         if serial in calibrations:
             raise ValueError(f"camera {serial} appears twice (second time: {path})")
-        calib = rec.calibration
+        calib = stream.calibration
         K, dist = calib.color.K(), calib.color.dist
         n = 0
-        for cap in rec:
+        for frame in stream:
             if max_frames is not None and n >= max_frames:
                 break
             n += 1
-            if cap.color_jpeg is None:
+            rgb = frame.color_rgb()  # None: no colour, or it did not decode (counted)
+            if rgb is None:
                 continue
-            rgb = decode_color(cap.color_jpeg, source=f"{path} capture {cap.index}")
             det = detect_board(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), spec, K, dist,
                                min_corners=min_corners)
             if len(det.ids) == 0:
                 continue
             pose = None if det.rvec is None else camera_from_board(det.rvec, det.tvec)
-            views.append(BoardView(serial, int(cap.index), det.ids, det.corners, pose))
+            views.append(BoardView(serial, int(frame.index), det.ids, det.corners, pose))
         serials.append(serial)
         calibrations[serial] = calib
         totals[serial] = n
         sources[serial] = path
-    return BoardObservations(spec, serials, calibrations, views, totals, sources)
+        skipped[serial] = list(stream.skipped)
+    return BoardObservations(spec, serials, calibrations, views, totals, sources, skipped)
 
 
 # ================================================================ extrinsics

@@ -74,6 +74,10 @@ class ImuMotion:
         LeftFoot_Toe, RightFoot_Heel, RightFoot_Toe), or None if the file has none.
     frame_rate: Hz as declared by the file.
     configuration: MVN configuration name (e.g. ``FullBody``).
+    truncation: None, or what was lost when the MVNX file was cut mid-way and read with
+        ``read_mvnx(..., recover_truncated=True)`` (copied from ``MvnxRecording.truncation``:
+        the file, where it ends and how many complete frames were kept); the N frames here are
+        the ones before the cut.
     """
 
     time: np.ndarray
@@ -86,6 +90,7 @@ class ImuMotion:
     foot_contact_labels: tuple[str, ...]
     frame_rate: float
     configuration: str
+    truncation: str | None = None
 
     @property
     def n_frames(self) -> int:
@@ -149,7 +154,9 @@ def mvnx_to_smpl(rec: MvnxRecording, *, rest_joints: np.ndarray | None = None,
             legs MVN exports without measuring them). False converts whatever segments exist,
             but missing segments still raise.
 
-    Returns an :class:`ImuMotion` (heading, origin and clock are the IMU's own).
+    Returns an :class:`ImuMotion` (heading, origin and clock are the IMU's own). A recording
+    recovered from a cut file converts its complete frames and keeps the note in
+    :attr:`ImuMotion.truncation`, so the cut stays reported downstream.
     """
     if require_full_body:
         gap = missing_for_full_body(rec)
@@ -187,6 +194,7 @@ def mvnx_to_smpl(rec: MvnxRecording, *, rest_joints: np.ndarray | None = None,
         foot_contact_labels=tuple(rec.foot_contact_labels),
         frame_rate=float(rec.frame_rate),
         configuration=rec.metadata.configuration,
+        truncation=rec.truncation,
     )
 
 

@@ -1016,6 +1016,14 @@ def read_mvnx(path: str | os.PathLike, *, recover_truncated: bool = False,
         else:
             what = f"malformed XML ({detail}); {context}"
         raise MvnxError(f"{path}: {where}: {what}") from None
+    except (LookupError, ValueError) as err:
+        # expat raises these (not ParseError) for the encoding named in the XML declaration:
+        # LookupError for an unknown one, ValueError for a multi-byte one (UTF-16/32, Shift-JIS).
+        if isinstance(err, MvnxError) or not (isinstance(err, LookupError)
+                                              or "encoding" in str(err)):
+            raise
+        raise MvnxError(f"{path}: line 1: the XML declaration names an encoding the parser "
+                        f"cannot read ({err}); MVN exports are UTF-8") from None
     if not reader.seen_root:
         raise reader.error("line 1", "not an XML document")
     return reader.build()

@@ -1,7 +1,8 @@
 """``couch-contact-sheet SESSION_DIR``: one frame of every camera, colour beside depth, as a PNG.
 
-Reads the recordings back through the capture stage's own MKV reader, so what it shows is what
-the pipeline will see. Depth is colour-mapped over 0.5–4 m (black = invalid).
+Reads the recordings back through the capture stage's own reader
+(:func:`couch.capture.frames.open_kinect_stream`), so what it shows is what the pipeline will see.
+Depth is colour-mapped over 0.5–4 m (black = invalid).
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import cv2
 import numpy as np
 
 from couch.atomic import atomic_path
-from couch.capture.azure_mkv import KinectFormatError, decode_color, open_azure_mkv
+from couch.capture.azure_mkv import KinectFormatError
+from couch.capture.frames import open_kinect_stream
 
 
 def colorize_depth(depth_mm: np.ndarray, near: float = 500.0, far: float = 4000.0) -> np.ndarray:
@@ -33,18 +35,20 @@ def contact_sheet(recordings: list[Path], frame: int, row_height: int = 240) -> 
     """(H,W,3) uint8 RGB: one row per recording, its colour and depth images of ``frame``."""
     rows = []
     for path in recordings:
-        rec = open_azure_mkv(path)
-        cap = None
-        for cap in rec:
-            if cap.index >= frame and cap.color_jpeg is not None and cap.depth_mm is not None:
+        stream = open_kinect_stream(path)
+        found = None
+        for f in stream:
+            # a colour frame that does not decode is counted in stream.skipped: take the next
+            if f.index >= frame and f.depth_mm is not None and f.color_rgb() is not None:
+                found = f
                 break
-        if cap is None or cap.color_jpeg is None or cap.depth_mm is None:
+        if found is None:
             raise KinectFormatError(f"{path}: no capture with colour and depth at or after "
                                     f"frame {frame}")
-        color = _fit(decode_color(cap.color_jpeg, source=str(path)), row_height)
-        depth = _fit(colorize_depth(cap.depth_mm), row_height)
+        color = _fit(found.color_rgb(), row_height)
+        depth = _fit(colorize_depth(found.depth_mm), row_height)
         row = np.concatenate([color, np.full((row_height, 6, 3), 255, np.uint8), depth], 1)
-        label = f"{rec.serial}  t={cap.timestamp_us / 1e6:.3f}s"
+        label = f"{stream.serial}  t={found.timestamp_us / 1e6:.3f}s"
         cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3)
         cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
         rows.append(row)

@@ -1,6 +1,7 @@
 """Benchmark: capture ingest throughput on a simulated session, measured in one run.
 
-Times, for every camera of a session: streaming the MKV (demux + JPEG decode), segmenting its
+Times, for every camera of a session: streaming the MKV through
+:func:`couch.capture.frames.open_kinect_stream` (demux + JPEG decode), segmenting its
 depth (background model + per-frame foreground), and fusing the person's world point cloud per
 frame from all cameras, and prints frames/s and the multiple of real time (camera frames per
 second over the recording's frame rate × cameras).
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from couch.capture.azure_mkv import decode_color, open_azure_mkv
+from couch.capture.frames import open_kinect_stream
 from couch.capture.pointcloud import fuse_clouds
 from couch.capture.segmentation import segment_recording
 
@@ -28,14 +29,13 @@ def bench(session: Path) -> None:
     truth = json.loads((session / "truth.json").read_text())
     poses = {c["serial"]: np.asarray(c["world_from_depth"]) for c in truth["cameras"]}
     files = {d["serial"]: session / d["file"] for d in manifest["kinect"]}
-    fps = open_azure_mkv(next(iter(files.values()))).fps
+    fps = open_kinect_stream(next(iter(files.values()))).fps
 
     start = time.perf_counter()
     frames = 0
     for path in files.values():
-        for cap in open_azure_mkv(path):
-            if cap.color_jpeg is not None:
-                decode_color(cap.color_jpeg)
+        for frame in open_kinect_stream(path):
+            frame.color_rgb()
             frames += 1
     read_s = time.perf_counter() - start
 
