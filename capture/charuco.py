@@ -32,6 +32,7 @@ __all__ = [
     "camera_from_board",
     "detect_board",
     "make_board",
+    "refine_saddle_points",
 ]
 
 
@@ -122,6 +123,86 @@ class BoardDetection(NamedTuple):
     tvec: np.ndarray | None
 
 
+def _marker_parameters() -> cv2.aruco.DetectorParameters:
+    """ArUco marker detection tuned for a board far from a 720p camera: markers down to ~1 %
+    of the image perimeter (OpenCV's default, 3 %, drops a 7.5 cm marker beyond ~2 m when the
+    board is turned away), 8 px cells when reading the marker bits, and a finer sweep of
+    adaptive-threshold windows."""
+    p = cv2.aruco.DetectorParameters()
+    p.minMarkerPerimeterRate = 0.01
+    p.perspectiveRemovePixelPerCell = 8
+    p.perspectiveRemoveIgnoredMarginPerCell = 0.2
+    p.adaptiveThreshWinSizeMin = 3
+    p.adaptiveThreshWinSizeMax = 33
+    p.adaptiveThreshWinSizeStep = 4
+    return p
+
+
+def refine_saddle_points(image_gray: np.ndarray, corners: np.ndarray, *, sigma: float = 1.0,
+                         radius: int = 2, iterations: int = 3,
+                         max_shift_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel chessboard corners as saddle points of the smoothed image (Chen & Zhang, "A new
+    sub-pixel detector for X-corners in camera calibration targets", WSCG 2005).
+
+    ``cv2.cornerSubPix`` (which ChArUco detection uses) carries ~0.05 px of systematic error even
+    on ideal, area-sampled corners, and on a board seen at 2 m it shrinks the pattern by ~0.03 %:
+    a millimetre-level bias in every camera's distance to the board. A weighted quadratic fitted
+    to the Gaussian-smoothed intensities around each corner, whose stationary point is the
+    corner, is ~10x more accurate (0.005 px on ideal corners) and unbiased in scale.
+
+    Args:
+        image_gray: (H, W) uint8 or float image.
+        corners: (N, 2) float pixel positions to refine (OpenCV convention: pixel centres at
+            integers), e.g. from ``CharucoDetector.detectBoard``.
+        sigma: Gaussian smoothing (pixels) that turns the corner into a smooth saddle.
+        radius: half-size (pixels) of the (2r+1)² fitting window; small, so that the markers
+            inside the white squares stay out of it.
+        iterations: re-centre the window on the estimate this many times.
+        max_shift_px: a corner moving farther than this from its input is kept as given.
+
+    Returns:
+        refined (N, 2) float64, and (N,) bool of the corners that were refined (the others,
+        near the image border, not saddle-shaped, or moving too far, are returned unchanged).
+    """
+    pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    img = np.asarray(image_gray)
+    if img.ndim != 2:
+        raise ValueError(f"refine_saddle_points expects an (H, W) image, got {img.shape}")
+    if len(pts) == 0:
+        return pts.copy(), np.zeros(0, bool)
+    smooth = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma)
+    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1].reshape(2, -1)
+    weight = np.exp(-(dx ** 2 + dy ** 2) / (2.0 * (0.7 * radius) ** 2))
+    design = np.stack([dx * dx, dx * dy, dy * dy, dx, dy, np.ones_like(dx)], 1).astype(float)
+    solve = np.linalg.pinv(design * weight[:, None])                 # (6, K): weighted LSQ
+    h, w = img.shape
+    est = pts.copy()
+    ok = np.ones(len(pts), bool)
+    for _ in range(iterations):
+        # The window is centred on the current estimate (bilinear samples): a window centred on
+        # the nearest pixel instead is lopsided around the corner and biases the fit ~0.1 px.
+        ok &= ((est[:, 0] >= radius) & (est[:, 0] <= w - 2 - radius)
+               & (est[:, 1] >= radius) & (est[:, 1] <= h - 2 - radius))
+        centre = np.where(ok[:, None], est, float(radius))
+        x = centre[:, 0, None] + dx[None]
+        y = centre[:, 1, None] + dy[None]
+        x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+        fx, fy = x - x0, y - y0
+        patch = ((1 - fy) * ((1 - fx) * smooth[y0, x0] + fx * smooth[y0, x0 + 1])
+                 + fy * ((1 - fx) * smooth[y0 + 1, x0] + fx * smooth[y0 + 1, x0 + 1]))
+        a, b, c, d, e, _ = ((patch * weight[None]) @ solve.T).T
+        # f = a x² + b xy + c y² + d x + e y + const: stationary point where ∇f = 0;
+        # a saddle has a negative Hessian determinant 4ac - b².
+        det = 4.0 * a * c - b * b
+        ok &= det < 0
+        safe = np.where(ok, det, -1.0)
+        step = np.stack([(b * e - 2.0 * c * d) / safe, (b * d - 2.0 * a * e) / safe], 1)
+        ok &= np.all(np.abs(step) <= 1.0, axis=1)
+        est = np.where(ok[:, None], centre + step, est)
+    ok &= np.linalg.norm(est - pts, axis=1) <= max_shift_px
+    return np.where(ok[:, None], est, pts), ok
+
+
 def detect_board(image_gray: np.ndarray, spec: BoardSpec, K: np.ndarray | None = None,
                  dist: np.ndarray | None = None, min_corners: int = 6) -> BoardDetection:
     """Detect the ChArUco corners of ``spec`` in an image and estimate the board pose.
@@ -134,7 +215,8 @@ def detect_board(image_gray: np.ndarray, spec: BoardSpec, K: np.ndarray | None =
         min_corners: fewest corners for a pose.
 
     Returns:
-        :class:`BoardDetection`; ``ids``/``corners`` are empty when nothing was found. The pose is
+        :class:`BoardDetection`; ``ids``/``corners`` are empty when nothing was found. Corners
+        are OpenCV's, refined by :func:`refine_saddle_points`. The pose is
         camera-from-board (``p_cam = R(rvec)·p_board + tvec``) from ``solvePnP`` (IPPE for a planar
         target, then Levenberg-Marquardt refinement on all corners).
     """
@@ -144,19 +226,22 @@ def detect_board(image_gray: np.ndarray, spec: BoardSpec, K: np.ndarray | None =
     if image.dtype != np.uint8:
         raise ValueError(f"detect_board expects a uint8 image, got {image.dtype}")
     board = make_board(spec)
-    detector = cv2.aruco.CharucoDetector(board)
+    params = cv2.aruco.CharucoParameters()
+    # A second pass looks for markers the first one missed where the board says they must be:
+    # on oblique boards at 2-3 m this recovers about half again as many corners.
+    params.tryRefineMarkers = True
     if K is not None:
         # With the camera model the detector interpolates corners through the distortion.
-        params = detector.getCharucoParameters()
         params.cameraMatrix = np.asarray(K, dtype=np.float64)
         params.distCoeffs = (np.zeros(5) if dist is None
                              else np.asarray(dist, dtype=np.float64).reshape(-1))
-        detector.setCharucoParameters(params)
+    detector = cv2.aruco.CharucoDetector(board, params, _marker_parameters())
     corners, ids, _, _ = detector.detectBoard(image)
     if ids is None or corners is None or len(ids) == 0:
         return BoardDetection(np.zeros(0, np.int32), np.zeros((0, 2)), None, None)
     ids = ids.reshape(-1).astype(np.int32)
-    corners_px = corners.reshape(-1, 2).astype(np.float64)
+    corners_px, _ = refine_saddle_points(image, corners.reshape(-1, 2))
+    corners = corners_px.astype(np.float32).reshape(-1, 1, 2)
     if K is None or len(ids) < min_corners or board.checkCharucoCornersCollinear(ids):
         return BoardDetection(ids, corners_px, None, None)
     obj, img = board.matchImagePoints(corners, ids)

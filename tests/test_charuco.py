@@ -14,6 +14,7 @@ from couch.capture.charuco import (
     camera_from_board,
     detect_board,
     make_board,
+    refine_saddle_points,
 )
 from couch.geometry import make_transform, transform_distance
 from couch.tools.sim import kinect
@@ -120,3 +121,49 @@ def test_pose_from_rendered_view(calib: kinect.KinectCalibration, distance: floa
     err = np.linalg.norm(proj.reshape(-1, 2) - det.corners, axis=1)
     assert err.max() < 0.5
     assert np.abs(err.mean()) < 0.2
+
+
+def _area_sampled_checkerboard(square: float, origin: tuple[float, float], size=(400, 300),
+                               blur: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
+    """An ideal camera image of an axis-aligned checkerboard: every pixel integrates the pattern
+    over its area (200 samples per axis; the pattern is separable), then optical blur; and the
+    true inner corners (pixel centres at integers)."""
+    def coverage(n: int, off: float) -> np.ndarray:
+        xs = np.arange(n)[:, None] - 0.5 + (np.arange(200) + 0.5)[None, :] / 200
+        return (np.floor((xs - off) / square) % 2 == 0).mean(1)
+
+    a, b = coverage(size[0], origin[0]), coverage(size[1], origin[1])
+    img = (0.5 - 2 * (a[None, :] - 0.5) * (b[:, None] - 0.5)) * 200 + 30
+    img = np.round(cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur)).astype(np.uint8)
+    nx = int((size[0] - origin[0]) // square) - 1
+    ny = int((size[1] - origin[1]) // square) - 1
+    truth = np.array([[origin[0] + i * square, origin[1] + j * square]
+                      for j in range(1, ny) for i in range(1, nx)])
+    return img, truth
+
+
+def test_saddle_refinement_beats_cornersubpix_on_ideal_corners() -> None:
+    img, truth = _area_sampled_checkerboard(23.7, (100.37, 80.81))
+    start = truth + np.random.default_rng(0).uniform(-0.3, 0.3, truth.shape)
+    ours, ok = refine_saddle_points(img, start)
+    opencv = cv2.cornerSubPix(img, start.astype(np.float32).reshape(-1, 1, 2), (3, 3), (-1, -1),
+                              (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6))
+    err_ours = np.sqrt(np.mean((ours - truth) ** 2))
+    err_cv = np.sqrt(np.mean((opencv.reshape(-1, 2) - truth) ** 2))
+    print(f"rms error: saddle {err_ours:.4f} px, cornerSubPix {err_cv:.4f} px")
+    assert ok.all()
+    assert err_ours < 0.015 and err_ours < 0.4 * err_cv
+
+
+def test_saddle_refinement_keeps_what_it_cannot_refine() -> None:
+    img, truth = _area_sampled_checkerboard(23.7, (100.37, 80.81))
+    flat = np.full_like(img, 128)
+    pts = np.vstack([truth[:3], [[0.5, 0.5], [399.2, 150.0]]])
+    out, ok = refine_saddle_points(img, pts)
+    assert ok[:3].all() and not ok[3:].any()          # the image border
+    assert np.array_equal(out[3:], pts[3:])
+    out, ok = refine_saddle_points(flat, truth[:5])    # no saddle at all
+    assert not ok.any() and np.array_equal(out, truth[:5])
+    assert refine_saddle_points(img, np.zeros((0, 2)))[0].shape == (0, 2)
+    with pytest.raises(ValueError, match="image"):
+        refine_saddle_points(np.zeros((4, 4, 3), np.uint8), truth[:1])
