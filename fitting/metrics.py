@@ -1,0 +1,226 @@
+"""Quality metrics of body fits and motion, shared by tests, reports and benchmarks.
+
+Every metric takes plain arrays (frames first) in metres and seconds, world frame, and returns
+per-frame values plus their summary, so a report can show where a sequence goes wrong:
+
+* :func:`mpjpe` — mean per-joint position error against ground truth joints.
+* :func:`surface_distances` / :func:`chamfer` — how well a fitted mesh explains a point cloud:
+  points → surface (exact point-to-triangle, open3d) and surface → points (samples of the
+  surface seen by the cameras, nearest point).
+* :func:`foot_skate` — horizontal foot travel while a foot is marked in contact (mm per frame).
+* :func:`jitter` — mean jerk magnitude of joint trajectories (m/s³).
+* :func:`sync_error` — an estimated clock model against the true one (ms, ppm).
+* :func:`foot_points` — the four foot points (heels and big toes) of posed vertices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "FOOT_KEYPOINTS",
+    "SurfaceDistances",
+    "chamfer",
+    "foot_points",
+    "foot_skate",
+    "jitter",
+    "mpjpe",
+    "surface_distances",
+    "sync_error",
+]
+
+#: The four foot points of the foot-slide term and the skate metric, as body-model keypoints.
+FOOT_KEYPOINTS = ("LHeel", "LBigToe", "RHeel", "RBigToe")
+
+
+def _frames(a: np.ndarray, name: str, trailing: tuple[int | None, ...]) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 1 + len(trailing) or any(
+            t is not None and s != t for s, t in zip(arr.shape[1:], trailing, strict=True)):
+        want = ", ".join("T" if i == 0 else ("*" if t is None else str(t))
+                         for i, t in enumerate((None, *trailing)))
+        raise ValueError(f"{name} must be ({want}), got {arr.shape}")
+    return arr
+
+
+def mpjpe(pred: np.ndarray, true: np.ndarray, *, root_aligned: bool = False) -> np.ndarray:
+    """Mean per-joint position error per frame.
+
+    Args:
+        pred, true: (T, J, 3) joint positions, metres, same frame and joint order.
+        root_aligned: subtract each frame's joint 0 (pelvis) from both first (pose error
+            without the global position).
+
+    Returns:
+        (T,) metres; ``.mean()`` is the sequence MPJPE.
+    """
+    p = _frames(pred, "pred", (None, 3))
+    t = _frames(true, "true", (None, 3))
+    if p.shape != t.shape:
+        raise ValueError(f"pred {p.shape} and true {t.shape} differ")
+    if root_aligned:
+        p = p - p[:, :1]
+        t = t - t[:, :1]
+    return np.linalg.norm(p - t, axis=-1).mean(axis=1)
+
+
+@dataclass(frozen=True)
+class SurfaceDistances:
+    """Distances between one frame's fitted surface and its point cloud, metres.
+
+    Attributes:
+        to_surface: (N,) each point's distance to the nearest point of the mesh.
+        to_points: (S,) distance from each surface sample to the nearest point (only samples
+            the cameras could see, see :func:`surface_distances`).
+    """
+
+    to_surface: np.ndarray
+    to_points: np.ndarray
+
+    @property
+    def chamfer(self) -> float:
+        """Symmetric chamfer: the mean of the two directions' mean distances (metres)."""
+        a = self.to_surface.mean() if len(self.to_surface) else np.nan
+        b = self.to_points.mean() if len(self.to_points) else np.nan
+        return float(np.nanmean([a, b]))
+
+
+def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
+                      visible_from: np.ndarray | None = None,
+                      samples: int = 4000, seed: int = 0) -> SurfaceDistances:
+    """Point cloud ↔ mesh distances of one frame.
+
+    Args:
+        vertices: (V, 3) posed mesh, metres, world; faces: (F, 3) int.
+        points: (N, 3) the frame's (segmented) point cloud, world.
+        visible_from: (C, 3) camera centres, world: only surface samples that some camera sees
+            (unoccluded by the mesh itself) count in the surface → points direction, since the
+            cameras never saw the rest. None: every sample counts.
+        samples: surface samples (area-uniform) for the surface → points direction.
+        seed: sampling seed.
+
+    Returns:
+        :class:`SurfaceDistances`.
+    """
+    v = np.asarray(vertices, dtype=np.float32)
+    f = np.asarray(faces, dtype=np.uint32)
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
+    to_surface = (scene.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
+                  if len(pts) else np.zeros(0))
+    sample = _sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
+    if visible_from is not None:
+        sample = sample[_visible(scene, sample, np.asarray(visible_from, np.float64))]
+    to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
+                 else np.full(len(sample), np.nan))
+    return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
+
+
+def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """(n, 3) area-uniform samples of a triangle mesh."""
+    tri = v[f]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(f), size=n, p=area / area.sum())
+    r1, r2 = rng.random((2, n, 1))
+    s = np.sqrt(r1)
+    return (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2]
+
+
+def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, cameras: np.ndarray
+             ) -> np.ndarray:
+    """(n,) bool: nothing of the mesh lies between the point and at least one camera."""
+    seen = np.zeros(len(pts), bool)
+    for cam in cameras:
+        d = cam - pts
+        dist = np.linalg.norm(d, axis=1)
+        d /= dist[:, None]
+        # start just off the surface towards the camera, so the sample's own face is not hit
+        origin = pts + 1e-4 * d
+        rays = np.concatenate([origin, d], axis=1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        seen |= ~(hit < dist - 1e-3)
+    return seen
+
+
+def chamfer(vertices: np.ndarray, faces: np.ndarray, clouds: list[np.ndarray], *,
+            visible_from: np.ndarray | None = None, samples: int = 4000) -> np.ndarray:
+    """Per-frame symmetric chamfer distance (metres) of fitted meshes to their point clouds.
+
+    Args:
+        vertices: (T, V, 3) posed meshes; faces: (F, 3).
+        clouds: T point clouds, (N_t, 3) each (their sizes differ, hence a list).
+        visible_from: (C, 3) camera centres (see :func:`surface_distances`).
+        samples: surface samples per frame.
+
+    Returns:
+        (T,) chamfer per frame (NaN for a frame with no points).
+    """
+    verts = _frames(vertices, "vertices", (None, 3))
+    if len(clouds) != len(verts):
+        raise ValueError(f"{len(verts)} meshes but {len(clouds)} clouds")
+    # Clouds differ in size per frame, so frames go one at a time through open3d's BVH.
+    return np.array([surface_distances(v, faces, c, visible_from=visible_from,
+                                       samples=samples, seed=t).chamfer
+                     if len(c) else np.nan for t, (v, c) in enumerate(zip(verts, clouds,
+                                                                          strict=True))])
+
+
+def foot_points(vertices: np.ndarray, keypoint_ids: dict[str, int]) -> np.ndarray:
+    """(T, 4, 3) heel and big-toe positions (``FOOT_KEYPOINTS`` order) of (T, V, 3) vertices,
+    from a body model's ``keypoint_ids``."""
+    missing = [k for k in FOOT_KEYPOINTS if k not in keypoint_ids]
+    if missing:
+        raise ValueError(f"the body model has no keypoint(s) {', '.join(missing)}")
+    v = _frames(vertices, "vertices", (None, 3))
+    return v[:, [keypoint_ids[k] for k in FOOT_KEYPOINTS]]
+
+
+def foot_skate(feet: np.ndarray, contact: np.ndarray) -> np.ndarray:
+    """Horizontal foot travel between consecutive frames in which a foot point is in contact.
+
+    Args:
+        feet: (T, K, 3) foot point positions, metres, world (Y up).
+        contact: (T, K) bool, the point is on the floor (e.g. the IMU's foot contacts).
+
+    Returns:
+        (M,) millimetres per frame, one value per (frame pair, point) in contact in both frames;
+        ``.mean()`` is the skate. Empty when no point is in contact twice in a row.
+    """
+    f = _frames(feet, "feet", (None, 3))
+    c = np.asarray(contact, dtype=bool)
+    if c.shape != f.shape[:2]:
+        raise ValueError(f"contact {c.shape} must be (T, K) = {f.shape[:2]}")
+    step = np.linalg.norm((f[1:] - f[:-1])[..., [0, 2]], axis=-1)
+    both = c[1:] & c[:-1]
+    return 1000.0 * step[both]
+
+
+def jitter(positions: np.ndarray, fps: float) -> np.ndarray:
+    """Jerk magnitude of trajectories: the third finite difference times ``fps³``.
+
+    Args:
+        positions: (T, J, 3) metres (T >= 4).
+        fps: frames per second.
+
+    Returns:
+        (T-3,) mean over joints of |jerk|, m/s³.
+    """
+    p = _frames(positions, "positions", (None, 3))
+    if len(p) < 4:
+        raise ValueError(f"jitter needs >= 4 frames, got {len(p)}")
+    jerk = np.diff(p, n=3, axis=0) * fps ** 3
+    return np.linalg.norm(jerk, axis=-1).mean(axis=1)
+
+
+def sync_error(offset_s: float, drift_ppm: float, true_offset_s: float,
+               true_drift_ppm: float) -> tuple[float, float]:
+    """(|offset error| in ms, |drift error| in ppm) of an estimated clock model
+    ``t_other = (1 + drift·1e-6)·t_kinect + offset`` against the true one."""
+    return abs(offset_s - true_offset_s) * 1000.0, abs(drift_ppm - true_drift_ppm)
