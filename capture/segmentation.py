@@ -15,25 +15,39 @@ Pipeline per camera (everything vectorised over pixels):
    in a few of six captures already breaks. Pixels that are invalid in
    most frames (beyond the sensor's range, dark NFOV corners) get an infinite background: anything
    measured there is in front of the room. Which frames to use is the caller's choice; see
-   :func:`background_from_recordings`. The simulator has no empty-room recording, but its ChArUco
-   calibration captures show the room with nobody in it (only the board, which moves between
-   captures); the tests build the background from those captures *and* the session's frames.
-2. :func:`foreground` — pixels in front of the background by more than a distance-dependent
-   margin (``margin + margin_per_m2·z²``, following the ToF noise that grows with z²), compared
-   with the 3x3 *nearest* background depth so that the lateral jitter of background depth edges
-   (a chair leg against a wall) does not leak slivers; points within ``floor_tolerance`` of the
-   floor plane y = 0 (world) removed; connected components (``cv2.connectedComponentsWithStats``)
-   smaller than ``min_component`` of the image dropped. Flying pixels (mixed depths at depth
-   edges, found by the 3x3 depth range relative to depth) and thin boundary noise (a
-   morphological opening) are kept in the *mask* (at a silhouette such a pixel is as likely
-   person as not, and opening erodes thin limbs) but excluded from ``reliable``, the pixels a
-   point cloud may use.
+   :func:`background_from_recordings`. Best is a short recording of the empty room (the chair in
+   place, nobody in view; the simulator writes ``background/<serial>.mkv``, found by
+   :func:`empty_room_recording`): :func:`segment_recording` then builds the background from it
+   alone. Without one, the ChArUco calibration captures (nobody in view; the board moves
+   between captures) *and* the session's own frames (the person moves) are combined.
+2. :func:`foreground` — *seeds*: pixels in front of the background by more than a
+   distance-dependent margin (``margin + margin_per_m2·z²``, following the ToF noise that grows
+   with z²), compared with the 3x3 *nearest* background depth so that the lateral jitter of
+   background depth edges (a chair leg against a wall) does not leak slivers, and more than
+   ``floor_tolerance`` above the floor plane y = 0 (world). Hysteresis grows the seeds (by at
+   most ``grow_px``) through pixels in front of their *own* background by ``weak_fraction`` of
+   the margin, at any height: the soles on the floor, a palm on the armrest, the body just past
+   the edge of a backrest in front of it. Connected components smaller than ``min_component``
+   of the image are dropped unless they are at least ``min_part`` and within ``part_distance``
+   (3-D) of a kept one (a hand seen between the chair's legs). Invalid pixels (no return) next
+   to the mask where the room is in range join it — the rim of a body seen at too grazing an
+   angle for the sensor, a dropout — and so do invalid holes and notches that a 3x3 closing
+   fills. Flying pixels (mixed depths at depth edges, found by the 3x3 depth range relative to
+   depth) and thin boundary noise (a morphological opening) are kept in the *mask* (at a
+   silhouette such a pixel is as likely person as not, and opening erodes thin limbs) but
+   excluded from ``reliable``, the seeds a point cloud may use. Everything after the seeds runs
+   on the bounding box of the grown seeds.
 3. Person vs chair (:func:`chair_pixels`, :func:`static_foreground`): foreground pixels within
-   ``chair_distance`` of the registered chair mesh (open3d ``RaycastingScene.compute_distance``)
-   are chair; so are, optionally, pixels that are foreground in (nearly) every frame of a long
-   recording. The rest is the person.
+   ``chair_distance`` of the registered chair mesh (open3d ``RaycastingScene.compute_distance``,
+   only for points inside the chair's bounding box) are chair — except where the background
+   itself shows the chair (:func:`room_on_chair`: the empty room was captured with the chair in
+   place), where foreground stands in front of it and is the person; so are, optionally, pixels
+   that are foreground in (nearly) every frame of a long recording. The rest is the person.
 4. :func:`mask_to_color` — a depth-pixel mask registered into the colour camera's pixels, to be
    compared with colour-pixel masks (the simulator's, BEHAVE's).
+
+Measured on simulated sessions (tests/test_capture_segmentation.py, settings there): person-mask
+IoU in colour pixels >= 0.96 in every frame with an empty-room background, >= 0.95 without.
 
 Frames and units: images are (H,W) in the depth camera's pixels unless named ``color``; depth is
 uint16 millimetres of Z (0 = invalid); ``world_from_depth`` is the (4,4) pose of the depth camera
@@ -43,6 +57,8 @@ in the world (metres, Y up, floor y = 0; the camera is +X right, +Y down, +Z for
 from __future__ import annotations
 
 import dataclasses
+import functools
+import json
 import logging
 import os
 from collections.abc import Iterable, Iterator
@@ -51,6 +67,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from couch.geometry import apply_transform, invert_transform
 
@@ -69,8 +86,10 @@ __all__ = [
     "camera_points",
     "chair_pixels",
     "depth_edges",
+    "empty_room_recording",
     "foreground",
     "mask_to_color",
+    "room_on_chair",
     "segment_frame",
     "segment_recording",
     "static_foreground",
@@ -101,11 +120,18 @@ class SegmentationConfig:
     floor_tolerance: float = 0.02  # m above the floor plane y = 0 that still counts as floor
     edge_ratio: float = 0.03  # 3x3 depth range / depth above which a pixel sits on an edge
     open_px: int = 3  # opening of the reliable (point cloud) pixels (px); 1 = none
-    grow_px: int = 1  # the mask grows this far into soles near the floor (px)
-    min_component: float = 5e-4  # smallest kept component, fraction of the image's pixels
+    weak_fraction: float = 0.5  # hysteresis: connected to the foreground, this share of the
+    #                              margin suffices, at any height (soles, a palm on the chair)
+    grow_px: int = 4  # ... within this many pixels of the seeds
+    rim_px: int = 1  # invalid pixels this near the foreground where the room is in range join it
+    min_component: float = 5e-4  # smallest kept component, fraction of the image's pixels ...
+    min_part: float = 6e-5  # ... or this, if within part_distance of one that large
+    part_distance: float = 0.3  # m (3-D)
     chair_distance: float = 0.02  # m from the chair mesh within which foreground is chair
     static_fraction: float = 0.95  # foreground in this fraction of frames = static (chair)
     static_min_frames: int = 30  # too few frames cannot tell a still person from the chair
+    max_background_frames: int = 30  # a recording's own background: at most this many of its
+    #                                  frames, evenly spaced
 
 
 @dataclasses.dataclass
@@ -123,6 +149,11 @@ class BackgroundModel:
     depth: np.ndarray
     near: np.ndarray
     frames: int
+
+    @functools.cached_property
+    def in_range(self) -> np.ndarray:
+        """(H,W) bool: pixels where the room is in the sensor's range (finite ``depth``)."""
+        return np.isfinite(self.depth)
 
     @classmethod
     def from_frames(cls, frames: Iterable[np.ndarray | None],
@@ -144,21 +175,23 @@ class BackgroundModel:
             stack.append(np.asarray(f, dtype=np.uint16))
         if not stack:
             raise SegmentationError("no depth frame with valid pixels to build a background from")
-        d = np.stack(stack).astype(np.float32) / 1000.0  # (T,H,W) metres
-        valid = d > 0
-        n_valid = valid.sum(axis=0)
+        a = np.stack(stack, axis=-1)  # (H,W,T) mm, time contiguous; 0 (invalid) sorts first
+        t = a.shape[-1]
+        n_valid = np.count_nonzero(a, axis=-1)
         # k-th farthest valid depth: something in front of the room in all but k-1 frames is
         # still seen past, yet one noisy frame alone does not make the background
         k = np.maximum(cfg.far_support, np.round(cfg.far_fraction * n_valid)).astype(np.intp)
-        d[~valid] = -np.inf
-        d = -np.sort(-d, axis=0)  # descending along time
-        far = np.take_along_axis(d, np.minimum(k, len(d))[None] - 1, axis=0)[0]
+        k = np.minimum(k, t)
+        # ascending, the k-th farthest sits at t - k: partition at just the positions used
+        a = np.partition(a, np.arange(t - k.max(), t - k.min() + 1), axis=-1)
+        far = np.take_along_axis(a, (t - k)[..., None], axis=-1)[..., 0]
         # "no return" is the farthest reading of all (beyond range, mostly): a pixel that gave
         # none in a good share of the frames has no room in range, whatever the other frames saw
         # (the board, a passer-by); sporadic dropouts at a grazing rim do not count
-        n_invalid = len(d) - n_valid
-        out_of_range = n_invalid >= np.maximum(k, cfg.out_of_range_fraction * len(d))
-        depth = np.where(out_of_range | (n_valid < k), np.inf, far).astype(np.float32)
+        n_invalid = t - n_valid
+        out_of_range = n_invalid >= np.maximum(k, cfg.out_of_range_fraction * t)
+        depth = np.where(out_of_range | (n_valid < k), np.float32(np.inf),
+                         far.astype(np.float32) * np.float32(1e-3)).astype(np.float32)
         # erode = 3x3 minimum; inf (no background) never wins over a measured neighbour
         near = cv2.erode(depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
         return cls(depth=depth, near=near, frames=len(stack))
@@ -215,6 +248,35 @@ def background_from_recordings(paths: Iterable[str | os.PathLike],
     return BackgroundModel.combine(models)
 
 
+def empty_room_recording(session_dir: str | os.PathLike, serial: str) -> Path | None:
+    """The empty-room recording of camera ``serial`` in a session folder, or None if it has none.
+
+    ``session.json``'s ``kinect[].background`` when the manifest names one (null: none), else
+    ``background/<serial>.mkv`` if that file exists.
+
+    Raises:
+        SegmentationError: the manifest names a file that does not exist.
+    """
+    root = Path(session_dir)
+    manifest = root / "session.json"
+    if manifest.is_file():
+        try:
+            kinects = json.loads(manifest.read_text())["kinect"]
+            entry = next((k for k in kinects if str(k.get("serial")) == str(serial)), None)
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
+            raise SegmentationError(f"{manifest}: malformed session manifest ({e!r})") from None
+        if entry is not None and "background" in entry:
+            if entry["background"] is None:
+                return None
+            path = root / entry["background"]
+            if not path.is_file():
+                raise SegmentationError(f"{manifest}: camera {serial}'s background recording "
+                                        f"{path} does not exist")
+            return path
+    path = root / "background" / f"{serial}.mkv"
+    return path if path.is_file() else None
+
+
 def camera_points(depth_mm: np.ndarray, calib: KinectCalibration) -> np.ndarray:
     """(H,W,3) float32 camera-frame points (metres) of every depth pixel; NaN where invalid."""
     rays = pixel_rays(calib.depth)
@@ -239,11 +301,88 @@ def depth_edges(depth_mm: np.ndarray, ratio: float) -> np.ndarray:
     return ((hi - lo) > ratio * z) | near_invalid
 
 
-def _keep_large_components(mask: np.ndarray, min_pixels: int) -> np.ndarray:
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
-    keep[0] = False  # label 0 is the background of the mask
-    return keep[labels]
+@dataclasses.dataclass(frozen=True)
+class _View:
+    """One camera's per-pixel constants, computed once per recording.
+
+    Attributes:
+        calib: the device.
+        world_from_depth: (4,4) float64 world pose of the depth camera (metres).
+        rays: (H,W,2) float32 normalised ray (x, y) of every pixel (NaN: invalid).
+        rise: (H,W) float32 world height gained per metre of Z along each ray (NaN: invalid),
+            so that a pixel's height above the floor is ``z·rise + height``.
+        height: the camera's height (m).
+    """
+
+    calib: KinectCalibration
+    world_from_depth: np.ndarray
+    rays: np.ndarray
+    rise: np.ndarray
+    height: np.float32
+
+    @classmethod
+    def of(cls, calib: KinectCalibration, world_from_depth: np.ndarray) -> _View:
+        pose = np.asarray(world_from_depth, dtype=np.float64)
+        rays = pixel_rays(calib.depth)
+        row = pose[1]
+        rise = (row[0] * rays[..., 0] + row[1] * rays[..., 1] + row[2]).astype(np.float32)
+        return cls(calib, pose, rays.astype(np.float32), rise, np.float32(row[3]))
+
+    def points(self, depth_mm: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        """(N,3) float32 camera-frame points (m) of the ``sel`` (H,W) pixels."""
+        z = depth_mm[sel].astype(np.float32) * np.float32(1e-3)
+        return np.column_stack([self.rays[sel] * z[:, None], z])
+
+    def points_at(self, depth_mm: np.ndarray, flat: np.ndarray) -> np.ndarray:
+        """(N,3) float32 camera-frame points (m) of the pixels at (N,) flat (row-major)
+        indices of the (H,W) image."""
+        rows, cols = np.divmod(flat, depth_mm.shape[1])
+        z = depth_mm[rows, cols].astype(np.float32) * np.float32(1e-3)
+        return np.column_stack([self.rays[rows, cols] * z[:, None], z])
+
+    def crop(self, box: tuple[slice, slice]) -> _View:
+        """The view of the pixels ``box`` (row and column slices) only."""
+        return dataclasses.replace(self, rays=self.rays[box], rise=self.rise[box])
+
+    def world(self, points: np.ndarray) -> np.ndarray:
+        """(N,3) float32 world points of (N,3) camera-frame points."""
+        pose = self.world_from_depth.astype(np.float32)
+        return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def _keep_components(mask: np.ndarray, depth_mm: np.ndarray, view: _View,
+                     config: SegmentationConfig, image_size: int | None = None) -> np.ndarray:
+    """(H,W) bool: the 8-connected components of ``mask`` of at least ``min_component`` of the
+    image (``image_size`` pixels; default: ``mask.size``), and the smaller ones of at least
+    ``min_part`` of it that come within ``part_distance`` (3-D) of those: a hand seen between
+    the chair's legs stays, a speck of noise across the room goes."""
+    size = image_size or mask.size
+    n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
+    if n == 1:
+        return np.zeros(mask.shape, dtype=bool)
+    area = np.bincount(labels[mask], minlength=n)
+    area[0] = 0  # label 0 is the background of the mask
+    big = area >= max(1, round(config.min_component * size))
+    small = ~big & (area >= max(1, round(config.min_part * size)))
+    if big.any() and small.any():
+        valid = (depth_mm > 0).ravel()
+        flat = labels.ravel()
+        at_big = np.flatnonzero(big[flat] & valid)
+        at_big = at_big[::max(1, len(at_big) // 4000)]  # a sample of ~4000 points suffices
+        at_small = np.flatnonzero(small[flat] & valid)
+        tree = cKDTree(view.points_at(depth_mm, at_big))
+        d, _ = tree.query(view.points_at(depth_mm, at_small),
+                          distance_upper_bound=config.part_distance)
+        big[flat[at_small][np.isfinite(d)]] = True
+    return big[labels]
+
+
+def _box(mask: np.ndarray, pad: int) -> tuple[slice, slice] | None:
+    """The bounding box of ``mask``'s (H,W) pixels grown by ``pad``, as slices; None if empty."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    if w == 0:
+        return None
+    return (slice(max(0, y - pad), y + h + pad), slice(max(0, x - pad), x + w + pad))
 
 
 def foreground(depth_mm: np.ndarray, background: BackgroundModel, calib: KinectCalibration,
@@ -259,40 +398,69 @@ def foreground(depth_mm: np.ndarray, background: BackgroundModel, calib: KinectC
         config: thresholds.
 
     Returns:
-        mask: (H,W) bool foreground silhouette (floor removed, small components dropped,
-            then grown by ``grow_px`` into adjacent soles).
-        reliable: (H,W) bool, the foreground before growing, without the pixels on depth
-            edges (flying pixels) and opened (thin boundary noise): the pixels whose depth a
-            point cloud may trust; none is within ``floor_tolerance`` of the floor.
+        mask: (H,W) bool foreground silhouette: pixels nearer than the background by the
+            margin and above the floor (seeds), grown by hysteresis (up to ``grow_px``)
+            through pixels nearer by ``weak_fraction`` of the margin at any height (soles, a
+            palm on the chair), in components of at least ``min_component`` of the image (or
+            ``min_part`` near one); then the invalid pixels within ``rim_px`` of it where the
+            room is in range (a grazing rim, a dropout) and the invalid holes it encloses.
+        reliable: (H,W) bool, the seeds in the mask without the pixels on depth edges (flying
+            pixels) and opened (thin boundary noise): the pixels whose depth a point cloud may
+            trust; none is within ``floor_tolerance`` of the floor.
     """
-    cfg = config or SegmentationConfig()
     if depth_mm.shape != background.depth.shape:
         raise SegmentationError(f"depth image {depth_mm.shape} does not match the background "
                                 f"{background.depth.shape}")
-    pts = camera_points(depth_mm, calib)
-    z = pts[..., 2]
-    with np.errstate(invalid="ignore"):
-        margin = cfg.margin + cfg.margin_per_m2 * z * z
-        nearer = z < background.near - margin  # NaN (invalid) compares False
-        # height above the floor: the world Y row of the pose applied to every point
-        r, t = world_from_depth[1, :3].astype(np.float32), np.float32(world_from_depth[1, 3])
-        above = (pts @ r + t) > cfg.floor_tolerance
-    mask = _keep_large_components(nearer & above,
-                                  max(1, round(cfg.min_component * nearer.size)))
+    return _foreground(depth_mm, background, _View.of(calib, world_from_depth),
+                       config or SegmentationConfig())
+
+
+def _foreground(depth_mm: np.ndarray, background: BackgroundModel, view: _View,
+                cfg: SegmentationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`foreground` with the camera's constants precomputed."""
+    z = depth_mm.astype(np.float32) * np.float32(1e-3)
+    valid = depth_mm > 0
+    margin = np.float32(cfg.margin) + np.float32(cfg.margin_per_m2) * z * z
+    # how far in front of the room (inf: no room in range); seeds against the nearest room in
+    # the 3x3 neighbourhood (a jittering depth edge of the room is no seed), their neighbours
+    # against the pixel's own room (a person seen just past the chair's edge)
+    with np.errstate(invalid="ignore"):  # NaN rise of invalid rays compares False
+        seeds = valid & (background.near - z > margin) & (
+            z * view.rise + view.height > np.float32(cfg.floor_tolerance))
+    weak = valid & (background.depth - z > np.float32(cfg.weak_fraction) * margin)
+    # hysteresis, within grow_px of the seeds: a biased background (few frames) cannot leak
+    region = seeds.view(np.uint8)
+    allowed = (weak | seeds).view(np.uint8)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for _ in range(cfg.grow_px):
+        region = cv2.dilate(region, cross) & allowed
+    # the rest only where the grown seeds are (with room for the morphology below)
+    mask = np.zeros(depth_mm.shape, dtype=bool)
+    reliable = np.zeros(depth_mm.shape, dtype=bool)
+    box = _box(region, max(cfg.rim_px, cfg.open_px) + 2)
+    if box is None:
+        return mask, reliable
+    crop = view.crop(box)
+    d = depth_mm[box]
+    m = _keep_components(region.view(bool)[box], d, crop, cfg, depth_mm.size)
     # what a point cloud may use: no depth-edge (flying) pixels, no thin boundary noise. The
     # silhouette keeps both: opening it costs more IoU at thin limbs than the noise does.
-    reliable = mask & ~depth_edges(depth_mm, cfg.edge_ratio)
+    rel = m & seeds[box] & ~depth_edges(d, cfg.edge_ratio)
     if cfg.open_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.open_px, cfg.open_px))
-        reliable = cv2.morphologyEx(reliable.astype(np.uint8), cv2.MORPH_OPEN,
-                                    kernel).astype(bool)
-    if cfg.grow_px > 0:
-        # The silhouette, not the point cloud, also owns the soles: pixels nearer than the floor
-        # behind them but within floor_tolerance of it, where they touch a kept part.
+        rel = cv2.morphologyEx(rel.view(np.uint8), cv2.MORPH_OPEN, kernel).view(bool)
+    if cfg.rim_px > 0:
+        # No return where the room gave one: something is in front of it. Next to the
+        # foreground that is its rim, seen at too grazing an angle for the sensor (or a dropout).
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
-                                           (2 * cfg.grow_px + 1, 2 * cfg.grow_px + 1))
-        near_mask = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
-        mask |= near_mask & nearer & ~above
+                                           (2 * cfg.rim_px + 1, 2 * cfg.rim_px + 1))
+        m8 = m.view(np.uint8)
+        near_mask = cv2.dilate(m8, kernel).view(bool)
+        # where the room is out of range too, only the holes and notches that closing fills
+        closed = cv2.morphologyEx(m8, cv2.MORPH_CLOSE, kernel).view(bool)
+        m = m | ((d == 0) & ((near_mask & background.in_range[box]) | closed))
+    mask[box] = m
+    reliable[box] = rel
     return mask, reliable
 
 
@@ -316,6 +484,12 @@ class ChairModel:
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(o3d.core.Tensor(world.astype(np.float32)),
                                   o3d.core.Tensor(np.asarray(self.faces, np.uint32)))
+        self._bounds = (world.min(axis=0).astype(np.float32), world.max(axis=0).astype(np.float32))
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(3,), (3,) float32 world corners of the chair's axis-aligned bounding box (m)."""
+        return self._bounds
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) float32 unsigned distance (m) of (N,3) world points to the chair surface."""
@@ -329,15 +503,37 @@ def chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, calib: KinectCalibratio
                  world_from_depth: np.ndarray, chair: ChairModel, distance: float,
                  ) -> np.ndarray:
     """(H,W) bool: the pixels of ``mask`` whose 3-D point lies within ``distance`` (m) of the
-    registered chair mesh. Only the masked pixels are queried (open3d ``compute_distance``)."""
-    out = np.zeros_like(mask, dtype=bool)
+    registered chair mesh. Only the masked pixels inside the chair's bounding box (grown by
+    ``distance``) are queried (open3d ``compute_distance``)."""
+    return _chair_pixels(mask, depth_mm, _View.of(calib, world_from_depth), chair, distance)
+
+
+def _chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, view: _View, chair: ChairModel,
+                  distance: float) -> np.ndarray:
+    out = np.zeros(mask.shape, dtype=bool)
     sel = mask & (depth_mm > 0)
     if not np.any(sel):
         return out
-    pts = camera_points(depth_mm, calib)[sel].astype(np.float64)
-    world = apply_transform(np.asarray(world_from_depth, np.float64), pts)
-    out[sel] = chair.distance(world) < distance
+    world = view.world(view.points(depth_mm, sel))
+    lo, hi = chair.bounds
+    inside = np.all((world > lo - distance) & (world < hi + distance), axis=1)
+    near = np.zeros(len(world), dtype=bool)
+    near[inside] = chair.distance(world[inside]) < distance
+    out[sel] = near
     return out
+
+
+def room_on_chair(background: BackgroundModel, calib: KinectCalibration,
+                  world_from_depth: np.ndarray, chair: ChairModel, distance: float,
+                  ) -> np.ndarray:
+    """(H,W) bool: pixels whose background depth lies within ``distance`` (m) of the chair
+    mesh, where the chair is part of the room (the empty room was captured with the chair in
+    place). Foreground there stands in front of the chair (a palm on the armrest), so it is
+    never chair."""
+    finite = background.in_range
+    depth_mm = np.rint(np.where(finite, background.depth, 0) * 1000)
+    return chair_pixels(finite, np.clip(depth_mm, 0, 65535).astype(np.uint16), calib,
+                        world_from_depth, chair, distance)
 
 
 def static_foreground(masks: np.ndarray, config: SegmentationConfig | None = None,
@@ -353,7 +549,7 @@ def static_foreground(masks: np.ndarray, config: SegmentationConfig | None = Non
 
 
 def mask_to_color(mask: np.ndarray, depth_mm: np.ndarray, calib: KinectCalibration,
-                  blur_px: float = 0.5) -> np.ndarray:
+                  blur_px: float = 1.0) -> np.ndarray:
     """Register a depth-pixel mask of a surface into the colour camera's pixels.
 
     The masked depth alone is registered with the SDK's rule (:func:`register_depth_to_color`),
@@ -435,20 +631,39 @@ class FrameSegmentation:
 def segment_frame(depth_mm: np.ndarray, background: BackgroundModel, calib: KinectCalibration,
                   world_from_depth: np.ndarray, chair: ChairModel | None = None,
                   static: np.ndarray | None = None, config: SegmentationConfig | None = None,
-                  *, index: int = 0, timestamp_us: int = 0) -> FrameSegmentation:
-    """Foreground, then chair (near the chair mesh, or in the ``static`` (H,W) mask), then the
-    person = the rest. See :func:`foreground` for the arguments."""
+                  *, room_chair: np.ndarray | None = None, index: int = 0,
+                  timestamp_us: int = 0) -> FrameSegmentation:
+    """Foreground, then chair (near the chair mesh but not in front of a room that already
+    shows the chair there (``room_chair`` (H,W), see :func:`room_on_chair`), or in the
+    ``static`` (H,W) mask), then the person = the rest. See :func:`foreground` for the
+    arguments."""
     cfg = config or SegmentationConfig()
-    fg, reliable = foreground(depth_mm, background, calib, world_from_depth, cfg)
-    is_chair = np.zeros_like(fg)
+    if depth_mm.shape != background.depth.shape:
+        raise SegmentationError(f"depth image {depth_mm.shape} does not match the background "
+                                f"{background.depth.shape}")
+    view = _View.of(calib, world_from_depth)
+    fg = _foreground(depth_mm, background, view, cfg)
+    return _split(depth_mm, fg, view, chair, static, room_chair, cfg, index, timestamp_us)
+
+
+def _split(depth_mm: np.ndarray, fg: tuple[np.ndarray, np.ndarray], view: _View,
+           chair: ChairModel | None, static: np.ndarray | None, room_chair: np.ndarray | None,
+           cfg: SegmentationConfig, index: int, timestamp_us: int) -> FrameSegmentation:
+    """:func:`segment_frame` from the frame's ``(mask, reliable)`` foreground."""
+    mask, reliable = fg
+    is_chair = np.zeros_like(mask)
     if chair is not None:
-        is_chair |= chair_pixels(fg, depth_mm, calib, world_from_depth, chair,
-                                 cfg.chair_distance)
+        cand = mask if room_chair is None else mask & ~room_chair
+        is_chair |= _chair_pixels(cand, depth_mm, view, chair, cfg.chair_distance)
     if static is not None:
-        is_chair |= static & fg
-    person = fg & ~is_chair
-    # the chair may have cut the person into pieces: drop the crumbs it left
-    person = _keep_large_components(person, max(1, round(cfg.min_component * person.size)))
+        is_chair |= static & mask
+    person = mask
+    box = _box(mask, 1)
+    if box is not None and is_chair[box].any():
+        # the chair may have cut the person into pieces: drop the crumbs it left
+        person = np.zeros_like(mask)
+        person[box] = _keep_components(mask[box] & ~is_chair[box], depth_mm[box],
+                                       view.crop(box), cfg, mask.size)
     return FrameSegmentation(index=index, timestamp_us=timestamp_us, depth_mm=depth_mm,
                              person=person, chair=is_chair, person_reliable=person & reliable,
                              chair_reliable=is_chair & reliable)
@@ -478,6 +693,7 @@ class CameraSegmentation:
 
 def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
                       background: BackgroundModel | None = None, *,
+                      empty_room: str | os.PathLike | None = None,
                       background_paths: Iterable[str | os.PathLike] = (),
                       include_session: bool = True, chair: ChairModel | None = None,
                       config: SegmentationConfig | None = None) -> CameraSegmentation:
@@ -486,18 +702,23 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     Args:
         path: the recording.
         world_from_depth: (4,4) world pose of this camera's depth camera (from calibration).
-        background: a ready model; else one is built from ``background_paths`` and (with
-            ``include_session``, or when there are no ``background_paths``) the recording itself,
-            combined with :meth:`BackgroundModel.combine`.
+        background: a ready model; else one is built from ``empty_room`` alone when given,
+            otherwise from ``background_paths`` and (with ``include_session``, or when there
+            are no ``background_paths``) the recording itself, combined with
+            :meth:`BackgroundModel.combine`.
+        empty_room: a recording of this camera of the room with nobody in view (the chair in
+            place), e.g. :func:`empty_room_recording`; None: fall back to the above.
         background_paths: recordings of the same camera with nobody in view (empty room,
             calibration captures).
-        include_session: also use the recording's own frames for the background (helps where
-            the empty-room frames had something in front, e.g. the ChArUco board).
+        include_session: also use the recording's own frames (at most
+            ``max_background_frames``, evenly spaced) for the background (helps where the
+            calibration captures had something in front, e.g. the ChArUco board).
         chair: the registered chair, if known.
         config: thresholds.
 
     Raises:
-        SegmentationError: the file has no DEPTH stream, or no frame with valid depth.
+        SegmentationError: the file has no DEPTH stream, no frame with valid depth, or depth
+            images of another size than the background's.
         KinectFormatError: the file is not a readable Azure Kinect recording.
     """
     cfg = config or SegmentationConfig()
@@ -525,19 +746,27 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     if not usable:
         raise SegmentationError(f"{path}: none of its {len(captures)} captures has valid depth "
                                 f"(all missing or all zeros)")
+    if background is None and empty_room is not None:
+        background = background_from_recordings([empty_room], cfg)
     if background is None:
         # each recording's own k-th farthest depth, then the farthest of them (combine)
         models = [background_from_recordings(background_paths, cfg)] if background_paths else []
         if include_session or not models:
-            models.append(BackgroundModel.from_frames([d for _, _, d in usable], cfg))
+            step = max(1, -(-len(usable) // cfg.max_background_frames))  # ceil
+            models.append(BackgroundModel.from_frames([d for _, _, d in usable[::step]], cfg))
         background = BackgroundModel.combine(models)
+    if background.depth.shape != usable[0][2].shape:
+        raise SegmentationError(f"{path}: depth images {usable[0][2].shape} do not match the "
+                                f"background {background.depth.shape}")
+    view = _View.of(calib, world_from_depth)
+    fgs = [_foreground(d, background, view, cfg) for _, _, d in usable]
     static = None
     if chair is None and len(usable) >= cfg.static_min_frames:
-        fgs = np.stack([foreground(d, background, calib, world_from_depth, cfg)[0]
-                        for _, _, d in usable])
-        static = static_foreground(fgs, cfg)
-    frames = [segment_frame(d, background, calib, world_from_depth, chair, static, cfg,
-                            index=i, timestamp_us=s) for i, s, d in usable]
+        static = static_foreground(np.stack([m for m, _ in fgs]), cfg)
+    room_chair = None if chair is None else room_on_chair(background, calib, world_from_depth,
+                                                          chair, cfg.chair_distance)
+    frames = [_split(d, fg, view, chair, static, room_chair, cfg, i, s)
+              for (i, s, d), fg in zip(usable, fgs, strict=True)]
     if skipped:
         log.warning("%s: skipped %d capture(s) without usable depth", path, len(skipped))
     return CameraSegmentation(serial=rec.serial or path.stem, calibration=calib,

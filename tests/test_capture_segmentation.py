@@ -1,28 +1,34 @@
-"""Depth segmentation and fused point clouds against a simulated session's ground truth.
+"""Depth segmentation and fused point clouds against simulated sessions' ground truth.
 
-Simulator settings of the session generated here (once per module): 4 cameras, NFOV_UNBINNED
-depth (640x576; NFOV_2X2BINNED gave mean IoU ~0.85 in exploration: a binned depth pixel is ~2.5
-colour pixels, too coarse for 0.95), 720P colour, 1.6 s at 5 fps (8 frames), default noise (1.0),
-no dropped frames, 4 ChArUco calibration poses, person masks on, seed 3 (a sofa, both hands).
+Simulator settings of the sessions generated here (once per module and seed): 4 cameras,
+NFOV_UNBINNED depth (640x576; NFOV_2X2BINNED gave mean IoU ~0.85 in exploration: a binned depth
+pixel is ~2.5 colour pixels, too coarse for 0.95), 720P colour, 5 fps, default noise (1.0), no
+dropped frames, 3 empty-room frames per camera, person masks on; seed 3 (a sofa, both hands;
+1.6 s = 8 frames, 4 ChArUco poses) and seed 7 (a straight chair whose backrest hides the back,
+free motion; 0.8 s = 4 frames, 1 ChArUco pose).
 
-The background is built from the calibration captures (nobody in view; the board moves) and the
-session itself (``BackgroundModel.combine``): the simulator has no empty-room recording.
-The chair's true mesh and world pose (ground_truth.h5) stand in for the registered scan.
+The background is the empty-room recording (``background/<serial>.mkv``); the fallback without
+one (calibration captures + the session itself) is measured too. The chair's true mesh and world
+pose (ground_truth.h5) stand in for the registered scan. The fused person cloud is measured
+against the clothed surface the cameras saw (``clothing.clothed_surface``: the simulated
+subject wears 0.5-3 cm of clothing) and, printed, against the unclothed body.
 
-Measured when written (printed by the tests with ``-s``): person-mask IoU in colour pixels mean
-0.958, per frame 0.948-0.969; fused person cloud to the unclothed body: median 12.7 mm (signed
-+12.7 mm: outside, the clothing), 11-15 mm per camera; chair cloud to the chair mesh 1.6 mm.
+Measured when written (printed by the tests with ``-s``): person-mask IoU in colour pixels,
+empty-room background: seed 3 mean 0.974, per frame >= 0.967; seed 7 mean 0.978, >= 0.964;
+fallback background, seed 3: mean 0.973, >= 0.966. Fused person cloud (reliable pixels) to the
+clothed surface: median 1.7 mm (seed 3; p90 4.2 mm) and 1.5 mm (seed 7); to the unclothed body
+12.6 and 10.9 mm (signed: outside, the clothing). Chair cloud to the chair mesh 1.5-1.6 mm.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
 import numpy as np
 import open3d as o3d
 import pytest
-import torch
 
 from couch.body import load_body_model
 from couch.capture.azure_mkv import AzureMkvWriter, open_azure_mkv
@@ -34,53 +40,86 @@ from couch.capture.segmentation import (
     SegmentationError,
     chair_pixels,
     depth_edges,
+    empty_room_recording,
     mask_to_color,
     segment_recording,
 )
 from couch.schema import read_processed
+from couch.tools.sim.clothing import body_vertices, clothed_surface
 from couch.tools.sim.session import SessionConfig, simulate_session
 
-CFG = SessionConfig(duration=1.6, fps=5.0, cameras=4, depth_mode="NFOV_UNBINNED", masks=True,
-                    charuco_poses=4, jpeg_quality=80, seed=3)
+BASE = SessionConfig(fps=5.0, cameras=4, depth_mode="NFOV_UNBINNED", masks=True,
+                     charuco_poses=4, jpeg_quality=80, background_frames=3)
+CONFIGS = {3: dataclasses.replace(BASE, duration=1.6, seed=3),
+           7: dataclasses.replace(BASE, duration=0.8, charuco_poses=1, seed=7)}
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory) -> dict:
-    out = tmp_path_factory.mktemp("seg_session")
-    info = simulate_session(out, CFG, progress=False)
-    truth = read_processed(out / "ground_truth.h5")
-    chair = ChairModel(truth.object_vertices, truth.object_faces, truth.object_pose)
+def _segment(out: Path, info: dict, chair: ChairModel, empty_room: bool) -> list:
+    """Every camera's segmentation, with the empty-room background or the fallback."""
     segs = []
     for cam in info["cameras"]:
-        segs.append(segment_recording(
-            out / "kinect" / f"{cam['serial']}.mkv", np.asarray(cam["world_from_depth"]),
-            background_paths=[out / "calibration" / f"{cam['serial']}.mkv"], chair=chair))
-    return {"out": out, "info": info, "truth": truth, "segs": segs}
+        serial = cam["serial"]
+        kwargs = ({"empty_room": empty_room_recording(out, serial)} if empty_room else
+                  {"background_paths": [out / "calibration" / f"{serial}.mkv"]})
+        if empty_room:
+            assert kwargs["empty_room"] is not None
+        segs.append(segment_recording(out / "kinect" / f"{serial}.mkv",
+                                      np.asarray(cam["world_from_depth"]), chair=chair,
+                                      **kwargs))
+    return segs
 
 
-def _session_frame(cam: dict, capture_index: int) -> int:
-    kept = [k for k in range(round(CFG.duration * CFG.fps)) if k not in cam["dropped_frames"]]
+@pytest.fixture(scope="module", params=sorted(CONFIGS), ids=lambda s: f"seed{s}")
+def session(request, tmp_path_factory) -> dict:
+    cfg = CONFIGS[request.param]
+    out = tmp_path_factory.mktemp(f"seg_session_{cfg.seed}")
+    info = simulate_session(out, cfg, progress=False)
+    truth = read_processed(out / "ground_truth.h5")
+    chair = ChairModel(truth.object_vertices, truth.object_faces, truth.object_pose)
+    return {"out": out, "info": info, "truth": truth, "cfg": cfg, "chair": chair,
+            "segs": _segment(out, info, chair, empty_room=True)}
+
+
+def _session_frame(cfg: SessionConfig, cam: dict, capture_index: int) -> int:
+    kept = [k for k in range(round(cfg.duration * cfg.fps)) if k not in cam["dropped_frames"]]
     return kept[capture_index]
 
 
-def test_person_masks_match_the_simulator_in_colour_pixels(session):
+def _ious(session: dict, segs: list) -> np.ndarray:
+    """(cameras, frames) person-mask IoU in colour pixels against the simulator's masks."""
+    cfg, out = session["cfg"], session["out"]
     ious = []
-    for cam, seg in zip(session["info"]["cameras"], session["segs"], strict=True):
-        assert not seg.skipped and len(seg.frames) == round(CFG.duration * CFG.fps)
+    for cam, seg in zip(session["info"]["cameras"], segs, strict=True):
+        assert not seg.skipped and len(seg.frames) == round(cfg.duration * cfg.fps)
         row = []
         for f in seg.frames:
-            k = _session_frame(cam, f.index)
-            truth = cv2.imread(str(session["out"] / "masks" / cam["serial"] / f"{k:05d}.png"),
+            k = _session_frame(cfg, cam, f.index)
+            truth = cv2.imread(str(out / "masks" / cam["serial"] / f"{k:05d}.png"),
                                cv2.IMREAD_GRAYSCALE) > 0
             ours = mask_to_color(f.person, f.depth_mm, seg.calibration)
             assert ours.shape == truth.shape
             row.append((ours & truth).sum() / (ours | truth).sum())
         ious.append(row)
         print(f"camera {cam['serial']}: IoU per frame {np.round(row, 3).tolist()}")
-    ious = np.asarray(ious)
-    print(f"IoU mean {ious.mean():.4f}, min {ious.min():.4f}")
-    assert ious.mean() >= 0.95  # the capture issue's requirement, on average
-    assert ious.min() >= 0.92  # no frame far off (worst: soles lost to the floor test)
+    return np.asarray(ious)
+
+
+def test_person_masks_match_the_simulator_in_colour_pixels(session):
+    """The capture issue's requirement: IoU >= 0.95 in every frame of every camera."""
+    ious = _ious(session, session["segs"])
+    print(f"seed {session['cfg'].seed}, empty-room background: IoU mean {ious.mean():.4f}, "
+          f"min {ious.min():.4f}")
+    assert ious.min() >= 0.95
+
+
+def test_person_masks_without_an_empty_room(session):
+    """Fallback background (calibration captures + the session's own frames): also >= 0.95."""
+    if session["cfg"].seed != 3:
+        pytest.skip("one session is enough for the fallback")
+    segs = _segment(session["out"], session["info"], session["chair"], empty_room=False)
+    ious = _ious(session, segs)
+    print(f"fallback background: IoU mean {ious.mean():.4f}, min {ious.min():.4f}")
+    assert ious.mean() >= 0.95 and ious.min() >= 0.95
 
 
 def test_masks_separate_person_and_chair(session):
@@ -90,32 +129,32 @@ def test_masks_separate_person_and_chair(session):
             assert not np.any(f.person_reliable & ~f.person)
 
 
-def _body_surface(truth, k: int) -> o3d.t.geometry.RaycastingScene:
-    model = load_body_model("couch-body")
-    with torch.no_grad():
-        out = model(betas=truth.betas[None], global_orient=truth.global_orient[k:k + 1],
-                    body_pose=truth.body_pose[k:k + 1], transl=truth.transl[k:k + 1])
+def _surface(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(out.vertices[0].numpy().astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(model.faces, np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
     return scene
 
 
 def test_fused_person_cloud_lies_on_the_clothed_body(session):
-    """Median distance of the fused person cloud to the TRUE (unclothed) body surface.
+    """Median distance of the fused person cloud to the surface the cameras saw <= 5 mm.
 
-    The simulated subject wears clothing 0.5-3 cm thick (looser on torso and thighs), so the
-    visible surface is that far outside the body: the cloud's distance to the body measures the
-    clothing as much as the capture. The 5 mm requirement can only be about the clothed
-    (visible) surface; against the body we assert what the clothing allows and that the cloud is
-    outside the body (positive signed distance), and print the numbers.
+    That surface is the clothed body (``clothed_surface``: the simulator's clothing rebuilt from
+    truth_clothing.npz). The distance to the unclothed (true) body is printed: it measures the
+    clothing as much as the capture (the cloud lies outside the body by about its thickness).
     """
-    info, truth, segs = session["info"], session["truth"], session["segs"]
+    info, truth, segs, out = session["info"], session["truth"], session["segs"], session["out"]
+    cfg = session["cfg"]
+    model = load_body_model(cfg.model)
+    clothed = clothed_surface(out, model=model)
+    body = body_vertices(model, truth.betas, {"global_orient": truth.global_orient,
+                                              "body_pose": truth.body_pose,
+                                              "transl": truth.transl}, slice(None))[0]
     calibs = [s.calibration for s in segs]
     poses = [s.world_from_depth for s in segs]
-    by_frame = [{_session_frame(cam, f.index): f for f in s.frames}
+    by_frame = [{_session_frame(cfg, cam, f.index): f for f in s.frames}
                 for cam, s in zip(info["cameras"], segs, strict=True)]
-    medians, signed_medians = [], []
+    medians, body_medians, body_signed = [], [], []
     for k in range(truth.num_frames):
         frames = [bf.get(k) for bf in by_frame]
         cloud = fuse_clouds([f.depth_mm if f else None for f in frames],
@@ -128,22 +167,24 @@ def test_fused_person_cloud_lies_on_the_clothed_body(session):
         centres = np.stack([p[:3, 3] for p in poses])[cloud.camera]
         facing = np.einsum("nk,nk->n", cloud.normals, centres - cloud.points)
         assert np.mean(facing > 0) > 0.99
-        scene = _body_surface(truth, k)
         q = o3d.core.Tensor(cloud.points)
-        dist = scene.compute_distance(q).numpy()
-        signed = scene.compute_signed_distance(q).numpy()
+        dist = _surface(clothed[k], model.faces).compute_distance(q).numpy()
+        to_body = _surface(body[k], model.faces)
         per_cam = {int(c): round(float(np.median(dist[cloud.camera == c])) * 1000, 1)
                    for c in np.unique(cloud.camera)}
         medians.append(np.median(dist))
-        signed_medians.append(np.median(signed))
-        print(f"frame {k}: {len(cloud)} pts, median |d| to body {medians[-1] * 1000:.1f} mm "
-              f"(signed {signed_medians[-1] * 1000:+.1f} mm, p90 "
-              f"{np.percentile(dist, 90) * 1000:.1f} mm), per camera (mm) {per_cam}")
-    print(f"all frames: median |d| {np.median(medians) * 1000:.1f} mm, signed "
-          f"{np.median(signed_medians) * 1000:+.1f} mm")
-    # clothing is 5-30 mm thick: the visible surface sits outside the body by about that
-    assert 0.003 < np.median(signed_medians) < 0.03
-    assert np.max(medians) < 0.03
+        body_medians.append(np.median(to_body.compute_distance(q).numpy()))
+        body_signed.append(np.median(to_body.compute_signed_distance(q).numpy()))
+        print(f"frame {k}: {len(cloud)} pts, median |d| to the clothed surface "
+              f"{medians[-1] * 1000:.1f} mm (p90 {np.percentile(dist, 90) * 1000:.1f} mm), per "
+              f"camera (mm) {per_cam}; to the unclothed body {body_medians[-1] * 1000:.1f} mm "
+              f"(signed {body_signed[-1] * 1000:+.1f} mm)")
+    print(f"all frames: median |d| to the clothed surface {np.median(medians) * 1000:.2f} mm, "
+          f"to the unclothed body {np.median(body_medians) * 1000:.1f} mm (signed "
+          f"{np.median(body_signed) * 1000:+.1f} mm)")
+    assert np.max(medians) <= 0.005  # the capture issue's requirement, in every frame
+    # the clothing (0.5-3 cm) lies outside the body: so does the cloud
+    assert 0.003 < np.median(body_signed) < 0.03
 
 
 def test_chair_cloud_lies_on_the_chair(session):
@@ -176,6 +217,8 @@ def _write(path: Path, calib, depths: list[np.ndarray | None]) -> None:
 
 
 def test_bad_depth_is_an_error_or_a_counted_skip(session, tmp_path):
+    if session["cfg"].seed != 3:
+        pytest.skip("format faults: one session is enough")
     seg = session["segs"][0]
     calib = seg.calibration
     cam = session["info"]["cameras"][0]
@@ -215,3 +258,46 @@ def test_background_sees_past_something_present_in_most_frames():
     assert np.all(np.isinf(bg.depth[30:]))
     other = BackgroundModel(bg.depth - 1.0, bg.near - 1.0, 5)
     assert np.allclose(BackgroundModel.combine([bg, other]).depth[:30], bg.depth[:30])
+
+
+def test_normals_of_a_tilted_plane_and_an_outlier_dropped():
+    """Plane-fit normals on an organised cloud: a plane 2 m away tilted 30° (depth rounded to
+    mm, as recorded: ~1° of slope noise over a 5x5 window) gives its normal facing the camera;
+    a 5 cm spike is dropped."""
+    from couch.capture.pointcloud import CloudConfig, camera_cloud
+    from couch.capture.registration import pixel_rays
+    from couch.tools.sim.kinect import random_calibration
+
+    calib = random_calibration(np.random.default_rng(0))
+    rays = pixel_rays(calib.depth)
+    normal = np.array([0.0, np.sin(np.radians(30)), -np.cos(np.radians(30))])  # faces the camera
+    # plane n·p = n·(0, 0, 2): along the ray (x, y, 1) it is at z = (n·c) / (n·(x, y, 1))
+    z = (normal @ [0.0, 0.0, 2.0]) / (rays[..., 0] * normal[0] + rays[..., 1] * normal[1]
+                                      + normal[2])
+    depth = np.nan_to_num(z * 1000.0)
+    mask = np.zeros(depth.shape, dtype=bool)
+    mask[200:300, 250:350] = True
+    depth[250, 300] -= 50.0  # a spike 5 cm towards the camera
+    depth = np.rint(depth).astype(np.uint16)
+    pcd = camera_cloud(depth, mask, calib, np.eye(4), CloudConfig(voxel=0))
+    pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
+    off_plane = np.abs(pts @ normal - normal @ [0.0, 0.0, 2.0])
+    assert len(pts) >= mask.sum() - 25 and off_plane.max() < 0.005  # the spike is gone
+    angle = np.degrees(np.arccos(np.clip(nrm @ normal, -1, 1)))
+    assert np.median(angle) < 1.5 and np.percentile(angle, 90) < 3.0
+
+
+def test_empty_room_recording_follows_the_manifest(tmp_path):
+    import json
+
+    assert empty_room_recording(tmp_path, "123") is None  # no manifest, no background/
+    (tmp_path / "background").mkdir()
+    (tmp_path / "background" / "123.mkv").write_bytes(b"")
+    assert empty_room_recording(tmp_path, "123") == tmp_path / "background" / "123.mkv"
+    manifest = {"kinect": [{"serial": "123", "background": None}]}
+    (tmp_path / "session.json").write_text(json.dumps(manifest))
+    assert empty_room_recording(tmp_path, "123") is None  # the manifest says none
+    manifest["kinect"][0]["background"] = "background/missing.mkv"
+    (tmp_path / "session.json").write_text(json.dumps(manifest))
+    with pytest.raises(SegmentationError, match="missing"):
+        empty_room_recording(tmp_path, "123")

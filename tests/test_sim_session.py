@@ -15,13 +15,22 @@ import av
 import numpy as np
 import pytest
 
+from couch.body import load_body_model
 from couch.capture.azure_calibration import KinectCalibration
 from couch.capture.azure_mkv import open_azure_mkv
 from couch.capture.xbus import XbusParser, read_device_map
 from couch.geometry import apply_transform
 from couch.schema import read_processed
 from couch.tools.contact_sheet import main as contact_sheet_main
+from couch.tools.sim import recording
 from couch.tools.sim.chairs import load_mesh
+from couch.tools.sim.clothing import (
+    CLOTHING_FILE,
+    body_vertices,
+    clothed_surface,
+    load_clothing,
+)
+from couch.tools.sim.kinect import LABEL_PERSON
 from couch.tools.sim.session import SessionConfig, simulate_session
 
 MVN_NS = "{http://www.xsens.com/mvn/mvnx}"
@@ -31,10 +40,26 @@ CFG = SessionConfig(duration=2.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory) -> tuple[Path, dict]:
+def recorded(tmp_path_factory) -> tuple[Path, dict, list[np.ndarray]]:
+    """The session, and the person vertices of every scene the recorder built (a spy on
+    ``build_scene``): what the cameras were shown, frame by frame."""
     out = tmp_path_factory.mktemp("session")
-    info = simulate_session(out, CFG, progress=False)
-    return out, info
+    shown: list[np.ndarray] = []
+    real = recording.build_scene
+
+    def spy(meshes):
+        shown.extend(m.vertices.copy() for m in meshes if m.label == LABEL_PERSON)
+        return real(meshes)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(recording, "build_scene", spy)
+        info = simulate_session(out, CFG, progress=False)
+    return out, info, shown
+
+
+@pytest.fixture(scope="module")
+def session(recorded) -> tuple[Path, dict]:
+    return recorded[0], recorded[1]
 
 
 def test_layout_and_manifest(session):
@@ -144,6 +169,48 @@ def test_ground_truth_and_chair_scan_agree(session):
     world = apply_transform(np.asarray(info["chair"]["world_from_scan"]), v)
     assert abs(world[:, 1].min()) < 1e-4  # the chair stands on the floor in the world
     assert np.allclose(truth.object_pose, info["chair"]["world_from_scan"])
+
+
+def test_clothed_surface_is_what_the_cameras_were_shown(recorded):
+    """truth_clothing.npz + ground_truth.h5 rebuild the rendered (clothed) person exactly."""
+    out, info, shown = recorded
+    truth = read_processed(out / "ground_truth.h5")
+    assert len(shown) == truth.num_frames  # mkv: every frame is built, dropped or not
+    frames = [0, 3, truth.num_frames - 1]
+    clothed = clothed_surface(out, frames)
+    assert clothed.shape == (len(frames), *shown[0].shape)
+    err = np.abs(clothed - np.stack([shown[k] for k in frames])).max()
+    assert err < 1e-6, f"clothed surface off the rendered one by {err * 1e3:.4f} mm"
+    assert np.allclose(clothed_surface(out)[frames], clothed, atol=1e-6)  # any chunking
+    clothing, model = load_clothing(out / CLOTHING_FILE)
+    assert model == CFG.model
+    assert clothing.hand_scale == pytest.approx(info["clothing"]["hand_scale"])
+    # the clothing is a real layer: up to ~3 cm off the body where loose, none on the face
+    body = body_vertices(
+        load_body_model(model), truth.betas,
+        {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
+         "transl": truth.transl}, np.array(frames))[0]
+    gap = np.linalg.norm(clothed - body, axis=-1)
+    assert 0.002 < np.median(gap) < 0.02 and 0.02 < gap.max() < 0.06
+
+
+def test_background_recording_is_the_empty_room(session):
+    """background/<serial>.mkv: CFG.background_frames frames per camera, no person, the room as
+    the session sees it (most pixels agree with the session's depth to noise)."""
+    out, _ = session
+    manifest = json.loads((out / "session.json").read_text())
+    for dev in manifest["kinect"]:
+        bg = list(open_azure_mkv(out / dev["background"]))
+        assert len(bg) == CFG.background_frames
+        assert all(c.depth_mm.shape == (288, 320) and c.color_jpeg for c in bg)
+        first = next(iter(open_azure_mkv(out / dev["file"]))).depth_mm.astype(np.float32)
+        b = bg[0].depth_mm.astype(np.float32)
+        both = (first > 0) & (b > 0)
+        same = np.abs(first - b)[both] < 30  # mm
+        assert 0.6 < same.mean() < 0.99  # the person covers a part of the image
+        # nothing in the empty room stands in front of what the session saw (but depth-edge
+        # jitter and flying pixels)
+        assert np.mean(b[both] >= first[both] - 30) > 0.98
 
 
 def test_contact_sheet_tool(session, tmp_path):

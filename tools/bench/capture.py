@@ -21,7 +21,7 @@ import numpy as np
 
 from couch.capture.frames import open_kinect_stream
 from couch.capture.pointcloud import fuse_clouds
-from couch.capture.segmentation import segment_recording
+from couch.capture.segmentation import empty_room_recording, segment_recording
 
 
 def bench(session: Path) -> None:
@@ -39,8 +39,9 @@ def bench(session: Path) -> None:
             frames += 1
     read_s = time.perf_counter() - start
 
+    rooms = {s: empty_room_recording(session, s) for s in files}
     start = time.perf_counter()
-    segs = {s: segment_recording(p, poses[s]) for s, p in files.items()}
+    segs = {s: segment_recording(p, poses[s], empty_room=rooms[s]) for s, p in files.items()}
     seg_s = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -56,7 +57,9 @@ def bench(session: Path) -> None:
 
     cams = len(files)
     realtime = fps * cams
-    print(f"session {session.name}: {cams} cameras, {frames} camera-frames at {fps:g} fps")
+    print(f"session {session.name}: {cams} cameras, {frames} camera-frames at {fps:g} fps; "
+          f"background from "
+          f"{'the empty-room recordings' if all(rooms.values()) else 'the session itself'}")
     for name, seconds, count in (("read (demux + JPEG decode)", read_s, frames),
                                  ("segment (depth)", seg_s, frames),
                                  ("fuse person clouds", fuse_s, n * cams)):

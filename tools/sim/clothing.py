@@ -6,16 +6,30 @@ every accuracy number flattering. So cameras see a clothed surface: a smooth per
 displacement of 0.5–3 cm (loosest on the torso and thighs, none on the face), folds that move
 with the joints, and hands and feet scaled a few percent about the wrist/ankle. Ground truth stays
 the underlying body.
+
+What the depth cameras saw is still recoverable: a session stores the clothing's static
+per-vertex parameters in ``truth_clothing.npz`` (:func:`save_clothing`), and
+:func:`clothed_surface` re-poses the body of ``ground_truth.h5`` and dresses it exactly as the
+recorder did, for tests that measure a point cloud against the visible (clothed) surface.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
+import torch
 
-from couch.body import JOINT_INDEX, BodyModel
+from couch.atomic import atomic_path
+from couch.body import JOINT_INDEX, BodyModel, load_body_model
 from couch.geometry import vertex_normals
+from couch.schema import read_processed
+
+#: The session file holding the clothing's static parameters (arrays only, no pickles).
+CLOTHING_FILE = "truth_clothing.npz"
 
 # Looseness (0..1) of clothing per dominant joint: 1 = loosest (3 cm), 0 = skin.
 _LOOSENESS = {
@@ -55,8 +69,6 @@ def _smooth_field(points: np.ndarray, rng: np.random.Generator, wavelengths=(0.1
 
 def make_clothing(model: BodyModel, betas: np.ndarray, rng: np.random.Generator) -> Clothing:
     """Random clothing for one subject of shape ``betas`` (model's rest pose)."""
-    import torch
-
     with torch.no_grad():
         out = model(betas=torch.as_tensor(np.asarray(betas)[None], dtype=model.dtype))
     v = out.vertices[0].double().numpy()
@@ -110,3 +122,97 @@ def dress(clothing: Clothing, model: BodyModel, vertices: np.ndarray,
     fold = clothing.fold_amp * np.sin(clothing.fold_phase + 3.0 * flex[:, clothing.fold_joint])
     normals = vertex_normals(vertices + posed_offset, model.faces)
     return vertices + posed_offset + fold[..., None] * normals
+
+
+def body_vertices(model: BodyModel, betas: np.ndarray, params: dict[str, np.ndarray],
+                  frames: slice | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Posed body vertices (T,V,3) and joint transforms (T,24,4,4), float64 world metres, of
+    ``frames`` (a slice or (T,) indices) of ``params`` (``global_orient`` (N,3), ``body_pose``
+    (N,69), ``transl`` (N,3)) for shape ``betas`` (K,)."""
+    with torch.no_grad():
+        out = model(betas=betas[None], global_orient=params["global_orient"][frames],
+                    body_pose=params["body_pose"][frames], transl=params["transl"][frames])
+    return out.vertices.double().numpy(), out.joint_transforms.double().numpy()
+
+
+def clothed_vertices(clothing: Clothing, model: BodyModel, betas: np.ndarray,
+                     params: dict[str, np.ndarray], frames: slice | np.ndarray) -> np.ndarray:
+    """(T,V,3) float64 world metres: the clothed surface the cameras see in ``frames`` of
+    ``params`` (see :func:`body_vertices`); what the recorder renders."""
+    verts, transforms = body_vertices(model, betas, params, frames)
+    return dress(clothing, model, verts, transforms, np.asarray(params["body_pose"])[frames])
+
+
+def save_clothing(path: str | os.PathLike, clothing: Clothing, model_name: str) -> None:
+    """Write ``clothing`` (and the body model's name it belongs to) as an npz, atomically."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(
+            fh, rest_offset=clothing.rest_offset, fold_amp=clothing.fold_amp,
+            fold_phase=clothing.fold_phase, fold_joint=clothing.fold_joint.astype(np.int64),
+            hand_scale=np.float64(clothing.hand_scale),
+            foot_scale=np.float64(clothing.foot_scale), model=np.str_(model_name))
+
+
+def load_clothing(path: str | os.PathLike) -> tuple[Clothing, str]:
+    """The clothing of :func:`save_clothing` and the body model name (``allow_pickle=False``).
+
+    Raises:
+        ValueError: the file is missing a key or its arrays disagree in vertex count (naming
+            the file).
+    """
+    keys = ("rest_offset", "fold_amp", "fold_phase", "fold_joint", "hand_scale", "foot_scale",
+            "model")
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in keys if k not in z]
+        if missing:
+            raise ValueError(f"{path}: missing arrays {missing}; not a simulator clothing file")
+        data = {k: z[k] for k in keys}
+    n = len(data["rest_offset"])
+    if data["rest_offset"].shape != (n, 3) or any(
+            data[k].shape != (n,) for k in ("fold_amp", "fold_phase", "fold_joint")):
+        raise ValueError(f"{path}: clothing arrays disagree in shape: "
+                         f"{ {k: data[k].shape for k in keys[:4]} }")
+    clothing = Clothing(rest_offset=data["rest_offset"], fold_amp=data["fold_amp"],
+                        fold_phase=data["fold_phase"], fold_joint=data["fold_joint"],
+                        hand_scale=float(data["hand_scale"]),
+                        foot_scale=float(data["foot_scale"]))
+    return clothing, str(data["model"])
+
+
+def clothed_surface(session_dir: str | os.PathLike,
+                    frames: Sequence[int] | np.ndarray | None = None,
+                    model: BodyModel | None = None, chunk: int = 64) -> np.ndarray:
+    """The clothed surface the simulator rendered in ``frames`` of a session.
+
+    Re-poses the body of ``ground_truth.h5`` (shape, pose and translation per frame) and dresses
+    it with the session's ``truth_clothing.npz``, as the recorder did.
+
+    Args:
+        session_dir: a ``couch-simulate`` session folder.
+        frames: (T,) indices into ``ground_truth.h5``'s frames; None = all.
+        model: the body model the session was rendered with; None = the one named in the
+            clothing file. Its faces are the surface's triangles.
+        chunk: frames posed at once (bounds memory).
+
+    Returns:
+        (T,V,3) float64 world metres (Y up, floor y = 0) of the body model's vertices.
+    """
+    session_dir = Path(session_dir)
+    path = session_dir / CLOTHING_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no clothing truth (a session written by an older "
+                                "couch-simulate?)")
+    clothing, name = load_clothing(path)
+    model = model or load_body_model(name)
+    if model.weights.shape[0] != len(clothing.rest_offset):
+        raise ValueError(f"{path}: clothing has {len(clothing.rest_offset)} vertices, the body "
+                         f"model {model.weights.shape[0]}")
+    truth = read_processed(session_dir / "ground_truth.h5")
+    params = {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
+              "transl": truth.transl}
+    idx = np.arange(truth.num_frames) if frames is None else np.asarray(frames, dtype=np.intp)
+    if idx.size and (idx.min() < 0 or idx.max() >= truth.num_frames):
+        raise IndexError(f"{session_dir}: frames must lie in 0..{truth.num_frames - 1}")
+    parts = [clothed_vertices(clothing, model, truth.betas, params, idx[a:a + chunk])
+             for a in range(0, len(idx), chunk)]
+    return np.concatenate(parts) if parts else np.zeros((0, len(clothing.rest_offset), 3))

@@ -17,22 +17,21 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from couch.atomic import atomic_path
 from couch.body import BodyModel
-from couch.capture.azure_calibration import KinectCalibration
+from couch.capture.azure_calibration import CameraIntrinsics, KinectCalibration
 from couch.capture.azure_mkv import AzureMkvWriter
 from couch.capture.behave import BehaveWriter, FrameImages
-from couch.capture.charuco import BoardSpec
+from couch.capture.charuco import BoardSpec, board_corners_3d
 from couch.capture.mvnx import write_mvnx
-from couch.capture.registration import register_depth_to_color
+from couch.capture.registration import project_points, register_depth_to_color
 from couch.capture.xbus import write_device_map
-from couch.geometry import make_transform
+from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.schema import ProcessedSession
 from couch.tools.sim.chairs import make_room
-from couch.tools.sim.clothing import dress, make_clothing
+from couch.tools.sim.clothing import CLOTHING_FILE, clothed_vertices, make_clothing, save_clothing
 from couch.tools.sim.ik import frame_from
 from couch.tools.sim.imu import ImuConfig, body_track_from_model, simulate_mvnx, simulate_xbus
 from couch.tools.sim.kinect import (
@@ -42,6 +41,7 @@ from couch.tools.sim.kinect import (
     DepthNoise,
     Light,
     SceneMesh,
+    SimScene,
     board_mesh,
     build_scene,
     place_cameras,
@@ -101,35 +101,77 @@ def person_colors(model: BodyModel, rng: np.random.Generator) -> np.ndarray:
     return colors
 
 
-def _board_poses(rng: np.random.Generator, cams: list[np.ndarray], centre: np.ndarray,
-                 count: int, spec: BoardSpec) -> list[np.ndarray]:
-    """World-from-board poses held up around ``centre``, each facing between two neighbouring
-    cameras in turn (with some tilt), so that pairs of cameras see the same board and the
-    calibration can link every camera to the others."""
-    poses = []
+def _board_poses(rng: np.random.Generator, rig: list[tuple[KinectCalibration, np.ndarray]],
+                 centre: np.ndarray, count: int, spec: BoardSpec) -> list[np.ndarray]:
+    """World-from-board poses held up around ``centre`` as an operator does for a multi-camera
+    calibration: each faces between two neighbouring cameras in turn (with some tilt), close
+    enough that both colour cameras see the whole pattern, so every pair of neighbours shares
+    views and the calibration can link every camera to the others.
+
+    A candidate pose is kept only when all ChArUco corners project inside both cameras' colour
+    images (with a margin) and each camera sees the printed face at under 60° incidence; of the
+    first 12 such candidates the one nearest to the cameras is used (after 200 candidates
+    without one, the best-seen). Nearer boards give sharper corners and better-posed PnP.
+    """
+    cams = [pose for _, pose in rig]
+    colours = [world_from_color(c, p) for c, p in rig]
+    corners = board_corners_3d(spec)
     w, h = spec.size
+    margin_px = 25.0
+    poses = []
     # neighbours around the rig, by azimuth about the centre
     order = np.argsort([np.arctan2(c[0, 3] - centre[0], c[2, 3] - centre[2]) for c in cams])
     for k in range(count):
-        a, b = order[k % len(cams)], order[(k + 1) % len(cams)]
-        cam = 0.5 * (cams[a][:3, 3] + cams[b][:3, 3])
-        pos = centre + np.array([rng.uniform(-0.2, 0.2), rng.uniform(0.2, 0.6),
-                                 rng.uniform(-0.2, 0.2)])
-        toward = (cam - pos) * np.array([1.0, 0.0, 1.0])
-        pos = pos + 0.6 * toward / np.linalg.norm(toward)  # held out towards the pair
-        face = cam - pos
-        face /= np.linalg.norm(face)
-        tilt = rng.normal(0, 0.1, 3)
-        face = face + tilt - (tilt @ face) * face
-        face /= np.linalg.norm(face)
-        # board +Z points into the board: away from the camera; +Y (down the columns) ≈ down
-        rot = frame_from(-face, np.array([0.0, -1.0, 0.0]))  # columns: z, y, x (permuted below)
-        z_axis, y_axis = rot[:, 0], rot[:, 1]
-        x_axis = np.cross(y_axis, z_axis)
-        r = np.stack([x_axis, y_axis, z_axis], axis=1)
-        origin = pos - r @ np.array([w / 2, h / 2, 0.0])
-        poses.append(make_transform(r, origin))
+        pair = (order[k % len(cams)], order[(k + 1) % len(cams)])
+        eyes = np.stack([cams[c][:3, 3] for c in pair])
+        best, best_key = None, (-np.inf, 0.0)
+        passed = 0
+        for _ in range(200):
+            # somewhere between the pair's tripods, pulled in towards the chair
+            along = eyes[0] + rng.uniform(0.3, 0.7) * (eyes[1] - eyes[0])
+            inward = (centre - along) * np.array([1.0, 0.0, 1.0])
+            pos = along + rng.uniform(0.35, 0.8) * inward
+            pos[1] = centre[1] + rng.uniform(0.0, 0.6)
+            face = eyes.mean(axis=0) - pos
+            face /= np.linalg.norm(face)
+            tilt = rng.normal(0, 0.15, 3)
+            face = face + tilt - (tilt @ face) * face
+            face /= np.linalg.norm(face)
+            # board +Z points into the board: away from the camera; +Y (down the columns) ≈ down
+            rot = frame_from(-face, np.array([0.0, -1.0, 0.0]))  # columns: z, y, x
+            z_axis, y_axis = rot[:, 0], rot[:, 1]
+            r = np.stack([np.cross(y_axis, z_axis), y_axis, z_axis], axis=1)
+            pose = make_transform(r, pos - r @ np.array([w / 2, h / 2, 0.0]))
+            score = min(_board_visibility(pose, corners, rig[c][0].color, colours[c], margin_px)
+                        for c in pair)
+            # of the candidates both cameras see whole, the nearest to the farther camera
+            key = (min(score, 0.0), -np.linalg.norm(eyes - pos, axis=1).max())
+            if key > best_key:
+                best, best_key = pose, key
+            passed += score >= 0.0
+            if passed >= 12:
+                break
+        poses.append(best)
     return poses
+
+
+def _board_visibility(world_from_board: np.ndarray, corners: np.ndarray,
+                      intrinsics: CameraIntrinsics, world_from_cam: np.ndarray,
+                      margin_px: float) -> float:
+    """How well one colour camera sees a board: >= 0 when every corner (N,3, board frame)
+    projects at least ``margin_px`` inside the image and the face is seen at < 60° incidence;
+    negative (the shortfall in pixels, or -1000 when seen edge-on/from behind) otherwise."""
+    cam_from_board = invert_transform(world_from_cam) @ world_from_board
+    to_board = cam_from_board[:3, 3] / np.linalg.norm(cam_from_board[:3, 3])
+    # the printed face's normal is the board's -Z; the camera must look at it head-on enough
+    if to_board @ cam_from_board[:3, 2] < np.cos(np.radians(60.0)):
+        return -1000.0
+    uv, valid = project_points(apply_transform(cam_from_board, corners), intrinsics)
+    if not valid.all():
+        return -1000.0
+    inside = np.minimum.reduce([uv[:, 0], uv[:, 1], intrinsics.width - 1 - uv[:, 0],
+                                intrinsics.height - 1 - uv[:, 1]])
+    return float(inside.min() - margin_px)
 
 
 BEHAVE_DATE = "Date01"
@@ -155,7 +197,8 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                    truth: ProcessedSession, model: BodyModel, rng_rig: np.random.Generator,
                    rng_imu: np.random.Generator, rng_noise: np.random.Generator,
                    motion_offset: float = 0.0, progress: bool = True) -> dict[str, Any]:
-    """Write kinect/, calibration/, imu/ (and masks/) under ``out``; return their truth."""
+    """Write kinect/, calibration/, background/, imu/ (and masks/) and truth_clothing.npz under
+    ``out``; return their truth."""
     times = truth.time
     n = len(times)
     chair_pos = seq.placement.world_from_chair[:3, 3]
@@ -186,6 +229,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                         "dropped": set(dropped.tolist()), "jitter": jitter})
 
     clothing = make_clothing(model, seq.motion.betas, rng_rig)
+    save_clothing(out / CLOTHING_FILE, clothing, cfg.model)
     colors = person_colors(model, rng_rig)
     rest = model(betas=seq.motion.betas[None]).vertices[0].detach().double().numpy()
     params = {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
@@ -208,8 +252,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
         for a in tqdm(range(0, n, chunk), desc="rendering", unit="x16 frames",
                       disable=not progress):
             sl = slice(a, min(n, a + chunk))
-            verts, transforms = body_vertices(model, seq.motion.betas, params, sl)
-            clothed = dress(clothing, model, verts, transforms, truth.body_pose[sl])
+            clothed = clothed_vertices(clothing, model, seq.motion.betas, params, sl)
             for j, k in enumerate(range(sl.start, sl.stop)):
                 person = SceneMesh(clothed[j], model.faces, label=LABEL_PERSON,
                                    vertex_colors=colors, texture="fabric",
@@ -247,7 +290,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
 
     # ChArUco captures for extrinsic calibration: the board alone in the room.
     spec = BoardSpec()
-    boards = _board_poses(rng_rig, cams, chair_pos + np.array([0.0, 0.6, 0.0]),
+    boards = _board_poses(rng_rig, rig, chair_pos + np.array([0.0, 0.6, 0.0]),
                           cfg.charuco_poses, spec)
     (out / "calibration").mkdir(exist_ok=True)
     for i, dev in enumerate(devices):
@@ -261,6 +304,10 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                 w.write(round((b + offsets[i]) * 1e6), color_jpeg=color.jpeg,
                         depth_mm=depth.depth_mm)
 
+    # The empty room (the chair in place, nobody in view) before the subject walked in.
+    background = _record_background(out / "background", cfg, devices, offsets,
+                                    build_scene([*statics, chair_mesh]), noise, light, rng_noise)
+
     imu = _record_imu(out / "imu", cfg, seq, model, rng_imu, motion_offset,
                       float(truth.time[0]))
 
@@ -271,6 +318,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
         "kinect": [{"serial": d["calib"].serial,
                     "file": None if frames_mode else f"kinect/{d['calib'].serial}.mkv",
                     "calibration_capture": f"calibration/{d['calib'].serial}.mkv",
+                    "background": background[i],
                     "sync": "MASTER" if i == 0 else "SUBORDINATE"}
                    for i, d in enumerate(devices)],
         "imu": {"mvnx": "imu/recording.mvnx", "xbus": "imu/xbus.bin",
@@ -301,13 +349,30 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
     }
 
 
-def body_vertices(model: BodyModel, betas: np.ndarray, params: dict[str, np.ndarray],
-                  frames: slice) -> tuple[np.ndarray, np.ndarray]:
-    """Posed vertices (T,V,3) and joint transforms (T,24,4,4) of ``frames`` of ``params``."""
-    with torch.no_grad():
-        out = model(betas=betas[None], global_orient=params["global_orient"][frames],
-                    body_pose=params["body_pose"][frames], transl=params["transl"][frames])
-    return out.vertices.double().numpy(), out.joint_transforms.double().numpy()
+def _record_background(out: Path, cfg: SessionConfig, devices: list[dict[str, Any]],
+                       offsets: list[float], scene: SimScene, noise: DepthNoise, light: Light,
+                       rng: np.random.Generator) -> list[str | None]:
+    """Write ``cfg.background_frames`` frames of the empty room per camera to
+    ``out/<serial>.mkv`` (as k4arecorder would: COLOR + DEPTH at the session's rate, recorded
+    10 minutes before the session); return each camera's path relative to the session folder
+    (None per camera when no frames are asked for)."""
+    if cfg.background_frames <= 0:
+        return [None] * len(devices)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, dev in enumerate(devices):
+        options = _writer_options(cfg, i)
+        options.update(uid_seed=cfg.seed * 1000 + 500 + i,
+                       creation_time=options["creation_time"] - _dt.timedelta(minutes=10))
+        with AzureMkvWriter(out / f"{dev['calib'].serial}.mkv", dev["calib"], **options) as w:
+            for b in range(cfg.background_frames):
+                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng)
+                color = render_color(scene, dev["calib"], dev["pose"], light, rng,
+                                     cfg.jpeg_quality)
+                w.write(round((b / cfg.fps + offsets[i]) * 1e6), color_jpeg=color.jpeg,
+                        depth_mm=depth.depth_mm)
+        paths.append(f"{out.name}/{dev['calib'].serial}.mkv")
+    return paths
 
 
 def _record_imu(out: Path, cfg: SessionConfig, seq: SimulatedSequence, model: BodyModel,

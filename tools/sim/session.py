@@ -5,11 +5,15 @@ Output folder (one session)::
     session.json            what the rig recorded: devices, files, sync modes
     kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH b16g)
     calibration/<serial>.mkv  ChArUco board captures, one frame per board pose
+    background/<serial>.mkv   the empty room (chair in place, nobody in view), a few frames
+                            (--background-frames; none with 0)
     imu/recording.mvnx      Xsens MVN export, 60 Hz on the IMU clock
     imu/xbus.bin            the raw Xbus MTData2 stream of the 17 sensors (+ device_map.json)
     chair_scan.obj          the chair as a 3D scanner delivers it (its own frame)
     ground_truth.h5         the processed-session schema on the Kinect master clock
     truth.json              everything else that is true: camera poses, clocks, chair pose, ...
+    truth_clothing.npz      the clothing's static per-vertex parameters: with ground_truth.h5,
+                            ``clothing.clothed_surface`` rebuilds the surface the cameras saw
     masks/<serial>/NNNNN.png  person masks in colour pixels (with --masks)
 
 ``--motion-only --sequences N`` writes N ground-truth motions (``motion_NNNNN.h5`` in the same
@@ -70,6 +74,7 @@ class SessionConfig:
     fps: float = 30.0  # an Azure Kinect rate: 5, 15 or 30
     depth_mode: str = "NFOV_UNBINNED"  # or NFOV_2X2BINNED (320x288, for small fixtures)
     charuco_poses: int = 8
+    background_frames: int = 3  # empty-room frames per camera (0: no background/ recording)
     jpeg_quality: int = 90
     model: str = "couch-body"
 
@@ -175,6 +180,8 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
     """Write one full session (see the module docstring); returns the truth.json content."""
     if cfg.fmt not in ("mkv", "frames"):
         raise ValueError(f"--format must be mkv or frames, got {cfg.fmt!r}")
+    if cfg.background_frames < 0:
+        raise ValueError(f"--background-frames must be >= 0, got {cfg.background_frames}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ss = np.random.SeedSequence(cfg.seed).spawn(4)
@@ -251,6 +258,9 @@ def main(argv: list[str] | None = None) -> int:
                     default=d.depth_mode)
     ap.add_argument("--charuco-poses", type=int, default=d.charuco_poses,
                     help="board poses in the calibration captures")
+    ap.add_argument("--background-frames", type=int, default=d.background_frames,
+                    help="frames of the empty room per camera (background/<serial>.mkv) for "
+                         "background subtraction; 0: none")
     ap.add_argument("--jpeg-quality", type=int, default=d.jpeg_quality)
     ap.add_argument("--masks", action="store_true", help="also write person masks (PNG)")
     ap.add_argument("--seed", type=int, default=d.seed)
