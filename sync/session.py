@@ -1,0 +1,115 @@
+"""Sync a whole session folder: cameras on the master clock, the IMU clock, IMU poses resampled.
+
+:func:`sync_session` chains :func:`couch.sync.signals.session_tracks` (one pass per camera),
+:func:`couch.sync.kinect.sync_tracks`, :func:`couch.sync.imu.sync_imu` and
+:func:`couch.sync.resample.resample_imu`; each step is usable alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from couch.capture.calibration import Extrinsics, calibrate_session
+from couch.capture.imu import ImuMotion, mvnx_to_smpl
+from couch.capture.mvnx import read_mvnx
+from couch.sync.clock import ClockEstimate, ClockModel, ClockSyncConfig
+from couch.sync.imu import sync_imu
+from couch.sync.kinect import KinectSync, KinectSyncConfig, sync_tracks
+from couch.sync.resample import ResampledImu, resample_imu
+from couch.sync.signals import CameraTrack, TrackConfig, session_tracks
+
+__all__ = ["SessionSync", "session_mvnx", "sync_session"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class SessionSync:
+    """A session on the Kinect master clock.
+
+    Attributes:
+        kinect: cameras, offsets and frame table (:class:`~couch.sync.kinect.KinectSync`).
+        tracks: the per-camera signals used (:class:`~couch.sync.signals.CameraTrack`).
+        imu_clock: the IMU clock estimate, or None when the session has no IMU recording.
+        imu: the suit's motion on its own clock, or None.
+        resampled: the suit's poses at ``kinect.time``, or None.
+        imu_source: the MVNX file read, or None.
+    """
+
+    kinect: KinectSync
+    tracks: list[CameraTrack]
+    imu_clock: ClockEstimate | None
+    imu: ImuMotion | None
+    resampled: ResampledImu | None
+    imu_source: str | None
+
+    def summary(self) -> str:
+        lines = [self.kinect.summary()]
+        if self.imu_clock is not None:
+            lines.append(f"IMU ({self.imu_source}): {self.imu_clock.summary()}")
+        if self.resampled is not None:
+            lines.append(self.resampled.summary())
+        return "\n".join(lines)
+
+
+def session_mvnx(session_dir: str | os.PathLike) -> Path | None:
+    """The session's MVNX file: ``session.json`` ``imu.mvnx``, else ``imu/*.mvnx`` (None: no
+    IMU recording)."""
+    root = Path(session_dir)
+    manifest = root / "session.json"
+    if manifest.is_file():
+        try:
+            entry = (json.loads(manifest.read_text()).get("imu") or {}).get("mvnx")
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise ValueError(f"{manifest}: malformed session manifest ({exc!r})") from None
+        if entry:
+            path = root / entry
+            if not path.is_file():
+                raise FileNotFoundError(f"{manifest}: the IMU recording {path} does not exist")
+            return path
+    found = sorted((root / "imu").glob("*.mvnx"))
+    return found[0] if found else None
+
+
+def sync_session(session_dir: str | os.PathLike, *,
+                 extrinsics: Extrinsics | dict[str, np.ndarray] | None = None,
+                 track_config: TrackConfig | None = None,
+                 kinect_config: KinectSyncConfig | None = None,
+                 clock_config: ClockSyncConfig | None = None,
+                 initial: ClockModel | None = None, search_s: float | None = None,
+                 progress: bool = False) -> SessionSync:
+    """Synchronise a session folder (``couch-simulate``'s layout / ``session.json``).
+
+    Args:
+        session_dir: the session.
+        extrinsics: camera poses; None calibrates them (:func:`couch.capture.calibration.
+            calibrate_session`).
+        track_config, kinect_config, clock_config: knobs of the steps.
+        initial, search_s: prior IMU clock and search half-width (see :func:`sync_imu`).
+        progress: progress bars.
+
+    Raises:
+        SyncError: from the steps (names the files).
+    """
+    root = Path(session_dir)
+    ext = extrinsics if extrinsics is not None else calibrate_session(root)
+    tracks = session_tracks(root, ext, config=track_config, progress=progress)
+    kinect = sync_tracks(tracks, config=kinect_config)
+    for w in kinect.warnings:
+        log.warning("%s", w)
+    mvnx = session_mvnx(root)
+    if mvnx is None:
+        return SessionSync(kinect, tracks, None, None, None, None)
+    imu = mvnx_to_smpl(read_mvnx(mvnx))
+    clock = sync_imu(kinect, tracks, imu, initial=initial, search_s=search_s,
+                     config=clock_config, imu_name=str(mvnx))
+    if not clock.confident:
+        log.warning("IMU sync of %s: %s", mvnx, clock.summary())
+    resampled = resample_imu(imu, clock.clock, kinect.time, source=str(mvnx))
+    return SessionSync(kinect, tracks, clock, imu, resampled, str(mvnx))
