@@ -1,7 +1,19 @@
 """Fitting stage: body fits to point clouds, chair registration, contacts, `couch-process`.
 
-Built so far: :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error)."""
+Built so far: :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
+:mod:`couch.fitting.body` (per-frame SMPL fits to person clouds, batched over frames),
+:mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan), and their
+parts: :mod:`~couch.fitting.params`, :mod:`~couch.fitting.clouds`, :mod:`~couch.fitting.nearest`,
+:mod:`~couch.fitting.skinning`, :mod:`~couch.fitting.terms`, :mod:`~couch.fitting.limits`."""
 
+from couch.fitting.body import (
+    BodyFit,
+    BodyFitConfig,
+    fit_bodies,
+    fit_bodies_frame_by_frame,
+)
+from couch.fitting.clouds import PaddedClouds, pad_clouds
+from couch.fitting.limits import joint_limit_penalty
 from couch.fitting.metrics import (
     FOOT_KEYPOINTS,
     SurfaceDistances,
@@ -13,8 +25,12 @@ from couch.fitting.metrics import (
     surface_distances,
     sync_error,
 )
+from couch.fitting.params import BodyParams
+from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
 __all__ = [
-    "FOOT_KEYPOINTS", "SurfaceDistances", "chamfer", "foot_points", "foot_skate", "jitter",
-    "mpjpe", "surface_distances", "sync_error",
+    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "PaddedClouds", "ShapeFit",
+    "ShapeFitConfig", "SurfaceDistances", "chamfer", "fit_betas_to_scan", "fit_bodies",
+    "fit_bodies_frame_by_frame", "fit_shape", "foot_points", "foot_skate", "jitter",
+    "joint_limit_penalty", "mpjpe", "pad_clouds", "surface_distances", "sync_error",
 ]

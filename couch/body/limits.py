@@ -57,6 +57,9 @@ for _name in JOINT_NAMES[1:]:
 _ORDER = {"left_elbow": "YXZ", "right_elbow": "YXZ", "left_shoulder": "ZYX",
           "right_shoulder": "ZYX", "left_wrist": "XZY", "right_wrist": "XZY"}
 
+#: Each body joint's intrinsic Euler order (scipy's upper-case convention), hinge axis first.
+EULER_ORDERS: dict[str, str] = {n: _ORDER.get(n, "XYZ") for n in JOINT_NAMES[1:]}
+
 _LOW = np.array([[r[0] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 _HIGH = np.array([[r[1] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 

@@ -1,0 +1,132 @@
+"""Linear blend skinning of *selected* vertices, for fitting.
+
+A fit only needs the vertices that take part in its terms (a few thousand per frame: the nearest
+vertices of the cloud points and a sample of the visible surface), not the whole mesh; and with
+one shape shared by all frames, the shaped rest mesh and rest joints are computed once per
+iteration, not once per frame. :class:`Skinner` does both, with the same maths as
+:func:`couch.body.lbs.lbs` (which it calls for forward kinematics), so ``Skinner`` and
+``BodyModel.forward`` give the same vertices.
+
+Shapes: B frames, V vertices, M selected vertices per frame, J = 24 joints. Metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from couch.body import BodyModel
+from couch.body.lbs import blend_shapes, rigid_transforms, vertices_to_joints
+from couch.fitting.terms import vertex_normals
+
+__all__ = ["Posed", "Skinner"]
+
+
+@dataclasses.dataclass
+class Posed:
+    """Posed skeletons of B frames.
+
+    transforms: (B,J,12) flattened 3×4 skinning transforms (rest model coordinates → world,
+    translation included); joints: (B,J,3) world joints; orient: (B,J,3,3) world rotations of
+    the joints; pose_offsets: (B,V,3) pose-corrective offsets, or None for a model without them.
+    """
+
+    transforms: torch.Tensor
+    joints: torch.Tensor
+    orient: torch.Tensor
+    pose_offsets: torch.Tensor | None
+
+
+class Skinner:
+    """Poses a body model's vertices (all, or a per-frame selection) for one shared shape."""
+
+    def __init__(self, model: BodyModel) -> None:
+        self.model = model
+        self.faces = torch.as_tensor(model.faces, device=model.device)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.model.num_vertices
+
+    def rest(self, betas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Shaped rest mesh (V,3) and rest joints (J,3) of shape ``betas`` (K,)."""
+        m = self.model
+        v_shaped = m.v_template + blend_shapes(betas[None], m.shapedirs)[0]
+        return v_shaped, vertices_to_joints(m.J_regressor, v_shaped[None])[0]
+
+    def pose(self, local: torch.Tensor, rest_joints: torch.Tensor, transl: torch.Tensor
+             ) -> Posed:
+        """Forward kinematics of B frames.
+
+        Args:
+            local: (B,J,3,3) local rotations (joint 0 = global orientation).
+            rest_joints: (J,3) from :meth:`rest`.
+            transl: (B,3) world translations.
+        """
+        m = self.model
+        b, nj = local.shape[:2]
+        joints, rel = rigid_transforms(local, rest_joints.expand(b, nj, 3), m.parents)
+        rel = rel[..., :3, :].clone()
+        rel[..., 3] = rel[..., 3] + transl[:, None]
+        # world rotation of each joint: the rotation part of its skinning transform
+        offsets = None
+        if m.posedirs is not None:
+            eye = torch.eye(3, dtype=local.dtype, device=local.device)
+            feature = (local[:, 1:] - eye).flatten(1)
+            offsets = (feature @ m.posedirs).view(b, -1, 3)
+        return Posed(transforms=rel.reshape(b, nj, 12), joints=joints + transl[:, None],
+                     orient=rel[..., :3], pose_offsets=offsets)
+
+    def posed_mesh(self, posed: Posed, v_shaped: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """All posed vertices (B,V,3) and their normals (B,V,3): the rest mesh's vertex normals
+        turned by each vertex's blended rotation (the usual LBS normal approximation; a few
+        degrees off near bent joints, and far cheaper than re-deriving them from the faces)."""
+        m = self.model
+        b = posed.transforms.shape[0]
+        rest_n = vertex_normals(v_shaped[None], self.faces)[0]
+        v = v_shaped.expand(b, -1, -1)
+        if posed.pose_offsets is not None:
+            v = v + posed.pose_offsets
+        blended = (m.weights @ posed.transforms).view(b, -1, 3, 4)
+        verts = (blended[..., :3] * v[..., None, :]).sum(-1) + blended[..., 3]
+        normals = torch.nn.functional.normalize(
+            (blended[..., :3] * rest_n[:, None, :]).sum(-1), dim=-1)
+        return verts, normals
+
+    def select(self, v_shaped: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """(B,J·4,M) skinning weights times homogeneous rest positions, w_vj · [v_v, 1], of the
+        vertices ``index`` (B,M): gathered once, posed many times by one matrix product
+        (:meth:`vertices` with ``selected``). Laid out with M last, the fastest layout for
+        that product on CPU."""
+        w = self.model.weights.T[:, index].transpose(0, 1)  # (B,J,M)
+        v = v_shaped.T[:, index].transpose(0, 1)  # (B,3,M)
+        vh = torch.cat([v, torch.ones_like(v[:, :1])], dim=1)  # (B,4,M)
+        return (w[:, :, None] * vh[:, None]).flatten(1, 2)
+
+    def vertices(self, posed: Posed, v_shaped: torch.Tensor,
+                 index: torch.Tensor | None = None, selected: torch.Tensor | None = None
+                 ) -> torch.Tensor:
+        """Posed vertices: all (B,V,3), or the selection ``index`` (B,M) → (B,M,3).
+
+        ``selected``: :meth:`select` of the same ``index`` (then ``v_shaped`` is not read for
+        the selection), for a model without pose correctives.
+        """
+        m = self.model
+        b, nj = posed.transforms.shape[:2]
+        if index is not None and selected is not None and posed.pose_offsets is None:
+            # Σ_j w_j A_j [v; 1] as one product: (B,3,J·4) @ (B,J·4,M)
+            t = posed.transforms.view(b, nj, 3, 4).permute(0, 2, 1, 3).reshape(b, 3, nj * 4)
+            return torch.bmm(t, selected).transpose(1, 2)
+        if index is None:
+            w, v = m.weights, v_shaped.expand(b, -1, -1)
+            if posed.pose_offsets is not None:
+                v = v + posed.pose_offsets
+            blended = (w @ posed.transforms).view(b, -1, 3, 4)
+        else:
+            w, v = m.weights[index], v_shaped[index]
+            if posed.pose_offsets is not None:
+                v = v + torch.gather(posed.pose_offsets, 1, index[..., None].expand(-1, -1, 3))
+            blended = torch.bmm(w, posed.transforms).view(b, -1, 3, 4)
+        return (blended[..., :3] * v[..., None, :]).sum(-1) + blended[..., 3]
