@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_azure_mkv import _ebml  # the MKV tests' independent EBML walker
 
 from couch.capture.azure_calibration import KinectCalibration
 from couch.capture.azure_mkv import AzureMkvWriter, KinectFormatError
@@ -137,29 +138,17 @@ def good_mkv(tmp_path_factory, calibration, jpegs, depths) -> Path:
     return _write_mkv(tmp_path_factory.mktemp("mkv") / "cam.mkv", calibration, jpegs, depths)
 
 
-def _elements(buf: bytes, pos: int, end: int):
-    """Independent minimal EBML walker: (id, header start, data start, data end)."""
-    while pos < end:
-        start = pos
-        n = 9 - buf[pos].bit_length()
-        eid = int.from_bytes(buf[pos:pos + n], "big")
-        pos += n
-        m = 9 - buf[pos].bit_length()
-        size = int.from_bytes(buf[pos:pos + m], "big") & ((1 << (7 * m)) - 1)
-        pos += m
-        yield eid, start, pos, pos + size
-        pos += size
 
 
 def _layout(buf: bytes) -> dict[str, tuple[int, int, int, int]]:
     """Top-level elements of the Segment by name (first of each), plus clusters as C0, C1..."""
-    head = next(_elements(buf, 0, 64))
-    seg = next(_elements(buf, head[3], len(buf)))
+    head = next(_ebml(buf, 0, 64))
+    seg = next(_ebml(buf, head[3], len(buf)))
     names = {0x114D9B74: "SeekHead", 0x1549A966: "Info", 0x1654AE6B: "Tracks",
              0x1941A469: "Attachments", 0x1254C367: "Tags", 0x1C53BB6B: "Cues"}
     out = {"EBML": head, "Segment": seg}
     clusters = 0
-    for e in _elements(buf, seg[2], seg[3]):
+    for e in _ebml(buf, seg[2], seg[3]):
         if e[0] == CLUSTER:
             out[f"C{clusters}"] = e
             clusters += 1
@@ -171,12 +160,12 @@ def _layout(buf: bytes) -> dict[str, tuple[int, int, int, int]]:
 def _blocks(buf: bytes, cluster: tuple[int, int, int, int]) -> list[tuple[int, int, int]]:
     """(header start, data start, data end) of the SimpleBlocks of a cluster (tracks 1, 2, 3 =
     COLOR, DEPTH, IR)."""
-    return [(s, a, b) for eid, s, a, b in _elements(buf, cluster[2], cluster[3])
+    return [(s, a, b) for eid, s, a, b in _ebml(buf, cluster[2], cluster[3])
             if eid == SIMPLE_BLOCK]
 
 
 def _fix_crc(buf: bytearray, cluster: tuple[int, int, int, int]) -> None:
-    crc_id, _, x, y = next(_elements(bytes(buf), cluster[2], cluster[3]))
+    crc_id, _, x, y = next(_ebml(bytes(buf), cluster[2], cluster[3]))
     assert crc_id == CRC32
     buf[x:y] = zlib.crc32(bytes(buf[y:cluster[3]])).to_bytes(4, "little")
 
