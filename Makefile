@@ -39,6 +39,7 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/couch-contact-sheet fixtures/sessions/sim_fixture --frame 6 -o out/fixture_contact_sheet.png
 	$(BIN)/couch-inspect fixtures/sessions/sim_fixture/ground_truth.h5
+	$(BIN)/couch-calibrate fixtures/sessions/sim_fixture --out out/fixture_extrinsics.json
 	$(BIN)/couch-demo -o out/demo_sitting.png
 
 lint: $(STAMP)
