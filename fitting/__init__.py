@@ -2,7 +2,8 @@
 
 Built so far: :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
 :mod:`couch.fitting.body` (per-frame SMPL fits to person clouds, batched over frames),
-:mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan), and their
+:mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan),
+:mod:`couch.fitting.fusion` (Kinect fits + IMU over the sequence, COUCH Eq. 7-8), and their
 parts: :mod:`~couch.fitting.params`, :mod:`~couch.fitting.clouds`, :mod:`~couch.fitting.nearest`,
 :mod:`~couch.fitting.skinning`, :mod:`~couch.fitting.terms`, :mod:`~couch.fitting.limits`."""
 
@@ -13,6 +14,7 @@ from couch.fitting.body import (
     fit_bodies_frame_by_frame,
 )
 from couch.fitting.clouds import PaddedClouds, pad_clouds
+from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
 from couch.fitting.limits import joint_limit_penalty
 from couch.fitting.metrics import (
     FOOT_KEYPOINTS,
@@ -29,8 +31,9 @@ from couch.fitting.params import BodyParams
 from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
 __all__ = [
-    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "PaddedClouds", "ShapeFit",
-    "ShapeFitConfig", "SurfaceDistances", "chamfer", "fit_betas_to_scan", "fit_bodies",
-    "fit_bodies_frame_by_frame", "fit_shape", "foot_points", "foot_skate", "jitter",
+    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "FusionConfig", "PaddedClouds",
+    "ShapeFit", "ShapeFitConfig", "SurfaceDistances", "chamfer", "contact_runs",
+    "fit_betas_to_scan", "fit_bodies", "fit_bodies_frame_by_frame", "fit_shape", "foot_points",
+    "foot_skate", "fuse_motion", "jitter",
     "joint_limit_penalty", "mpjpe", "pad_clouds", "surface_distances", "sync_error",
 ]

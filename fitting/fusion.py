@@ -1,0 +1,356 @@
+"""Fusion of the per-frame Kinect fits with the IMU motion over a sequence (COUCH Eq. 7 and 8;
+issue 7, item 4).
+
+The per-frame fits (:mod:`couch.fitting.body`) place the body where the cameras saw it but are
+jittery, and wrong where the cameras were occluded; the synced IMU pose is smooth but its bone
+orientations carry slowly varying biases and its feet slide. :func:`fuse_motion` optimises the
+joint rotations and the translation of the whole sequence at once (frames are the batch dimension
+of one torch optimisation) so the motion
+
+* follows the Kinect fits where they are reliable: joint positions and bone world orientations
+  near the fit's, each frame and joint weighted by its ``reliability`` (0 = ignore the fit);
+* follows the IMU elsewhere: the local rotation of every joint is parametrised as the IMU's times
+  a correction, ``R = R_imu · exp(δ)``, where δ is a cubic B-spline over time (control points
+  every ``knot_frames`` frames) whose second differences are penalised (``sigma_bias_deg``: a
+  constant or linearly drifting bias is free), so an occluded stretch keeps the IMU's motion with
+  the bias measured around it, the fits' per-frame noise cannot get in, and δ stays small
+  (``sigma_imu_deg``) where nothing else decides it; an optional per-frame residual
+  (``sigma_frame_deg``, off by default) lets the fits correct the IMU frame by frame. The
+  translation likewise is the IMU's plus a smooth correction when the IMU pose has one, else a
+  smooth spline through the reliable fits (``sigma_transl_knot_m``);
+* is smooth, COUCH Eq. 7: ``L_temp = Σ ||r_{i+1} − r_i||² + Σ ||j̈_i||²`` over local rotation
+  matrices r and central-difference joint accelerations j̈ (both squared here, scales
+  ``sigma_step_deg``, ``sigma_acc_m``);
+* does not slide its feet, COUCH Eq. 8: ``L_slide = Σ ||f̃_i − f_i||²`` over the four foot points
+  (heels and big toes, :data:`couch.fitting.metrics.FOOT_KEYPOINTS`, body-model keypoints) in the
+  frames the IMU marks them in contact, with targets f̃ the mean position of each point over each
+  contiguous run of contact frames (recomputed from the current motion between ``rounds``), the
+  target height put on the floor (``floor_height`` plus the point's height above the sole in the
+  rest pose) so feet in contact stand on the floor; and no foot point goes below the floor.
+
+Every term is a squared residual over a scale (metres, degrees), summed over frames and divided
+by T; the optimiser is L-BFGS over the whole sequence, in float64 (a float64 copy of a float32
+model is made: in float32 the line search stalls on these stiff terms).
+
+Not done here: the fits' reliability must come from the caller (e.g. per-frame chamfer, point
+count, the fit's ``fallback`` flags); the fusion runs on the body model it is given (coarse by
+default, no full-model finish); and one call fuses one contiguous sequence held in memory.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from typing import Any
+
+import numpy as np
+import torch
+
+from couch.body import BodyModel
+from couch.fitting.body import cached_model
+from couch.fitting.metrics import FOOT_KEYPOINTS
+from couch.fitting.params import BodyParams
+from couch.fitting.skinning import Skinner
+from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+__all__ = ["FusionConfig", "contact_runs", "fuse_motion"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FusionConfig:
+    """Scales (expected size of each residual; smaller = stronger) and optimiser settings.
+
+    Lengths in metres, angles in degrees; "per frame" means between consecutive frames.
+    """
+
+    model: str = "couch-body-coarse"
+    """Body model (name or path) when ``fuse_motion`` is given none."""
+    sigma_kinect_m: float = 0.02
+    """Joint position error of a reliable Kinect fit."""
+    sigma_kinect_deg: float = 8.0
+    """Bone world-orientation error of a reliable Kinect fit."""
+    sigma_imu_deg: float = 10.0
+    """Size of the correction to the IMU rotations (its bias) that nothing else decides."""
+    knot_frames: int = 6
+    """Spacing (frames) of the knots of the smooth part of the corrections to the IMU."""
+    sigma_bias_deg: float = 0.5
+    """Second difference per knot² of the smooth IMU rotation correction (how fast the IMU's
+    bias changes its drift; a constant or linearly drifting bias costs nothing)."""
+    sigma_bias_m: float = 0.005
+    """Second difference per knot² of the smooth IMU translation correction (with an IMU
+    translation; a constant offset or linear drift costs nothing)."""
+    sigma_transl_knot_m: float = 0.005
+    """Without an IMU translation: second difference per knot² of the translation spline
+    (pelvis acceleration × (knot_frames / fps)²; 5 mm ≈ 0.125 m/s² at 6 frames, 30 fps: a soft
+    scale against the fits' noise, reliable fits still move the pelvis faster)."""
+    sigma_frame_deg: float = 0.0
+    """Per-frame residual of the IMU rotation correction (the IMU's own noise; 0: none, the
+    correction is the smooth spline alone). A residual lets the Kinect fits' per-frame noise
+    back in, so keep it well below the fits' noise."""
+    sigma_frame_m: float = 0.0
+    """Per-frame residual of the IMU translation correction (0: none)."""
+    sigma_step_deg: float = 10.0
+    """L_temp, first term: local rotation change per frame."""
+    sigma_acc_m: float = 0.01
+    """L_temp, second term: central-difference joint acceleration per frame²."""
+    sigma_slide_m: float = 0.002
+    """L_slide: foot point distance to its contact target."""
+    sigma_floor_m: float = 0.002
+    """Foot point depth below the floor."""
+    floor_height: float = 0.0
+    """World height (Y) of the floor."""
+    snap_to_floor: bool = True
+    """Put contact targets on the floor (else only keep them above it)."""
+    rounds: int = 3
+    """Rounds of L-BFGS; the foot targets are recomputed from the motion before each."""
+    iters: int = 100
+    """L-BFGS iterations per round."""
+    device: str = "cpu"
+    """Device of the default model (the optimisation runs in float64 whatever the model's)."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name.startswith("sigma_frame"):
+                if not v >= 0:
+                    raise ValueError(f"FusionConfig.{f.name} must be >= 0, got {v}")
+            elif f.name.startswith("sigma_") and not v > 0:
+                raise ValueError(f"FusionConfig.{f.name} must be > 0, got {v}")
+        if self.knot_frames < 1:
+            raise ValueError(f"FusionConfig.knot_frames must be >= 1, got {self.knot_frames}")
+        if self.rounds < 1 or self.iters < 1:
+            raise ValueError(f"FusionConfig.rounds and iters must be >= 1, got "
+                             f"{self.rounds}, {self.iters}")
+
+
+def _second_difference(x: torch.Tensor) -> torch.Tensor:
+    return x[2:] - 2.0 * x[1:-1] + x[:-2]
+
+
+def _spline_basis(t: int, spacing: int) -> np.ndarray:
+    """(T,K) uniform cubic B-spline weights of control points every ``spacing`` frames (one
+    extra control point beyond each end): a C² curve, so the correction adds no jerk spikes."""
+    n = max(1, int(np.ceil((t - 1) / spacing)))
+    pos = np.linspace(0.0, n, t)
+    x = np.abs(pos[:, None] - np.arange(-1, n + 2)[None])
+    return np.where(x < 1, (4 - 6 * x ** 2 + 3 * x ** 3) / 6,
+                    np.where(x < 2, (2 - x).clip(0) ** 3 / 6, 0.0))
+
+
+def contact_runs(contact: np.ndarray) -> list[tuple[int, int, int]]:
+    """Contiguous runs of contact: (point k, first frame, end frame exclusive) for (T, K) bool."""
+    c = np.asarray(contact, dtype=bool)
+    runs = []
+    for k in range(c.shape[1]):
+        edges = np.diff(np.concatenate([[0], c[:, k].astype(np.int8), [0]]))
+        runs += [(k, int(s), int(e)) for s, e in zip(np.flatnonzero(edges == 1),
+                                                     np.flatnonzero(edges == -1), strict=True)]
+    return runs
+
+
+def _local_rotations(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(T,24,3,3) local rotations and the (T,3) translation (or None) of a pose input."""
+    if isinstance(x, BodyParams):
+        aa = np.concatenate([x.global_orient, x.body_pose], 1).reshape(-1, 24, 3)
+        return axis_angle_to_matrix(aa.astype(np.float64)), x.transl.astype(np.float64)
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 3 and a.shape[1:] == (24, 3):
+        rot = axis_angle_to_matrix(a)
+    elif a.ndim == 4 and a.shape[1:] == (24, 3, 3):
+        rot = a
+        if not np.allclose(rot @ np.swapaxes(rot, -1, -2), np.eye(3), atol=1e-3):
+            raise ValueError(f"{name}: (T,24,3,3) matrices are not rotations")
+    else:
+        raise ValueError(f"{name} must be BodyParams, (T,24,3) axis-angle or (T,24,3,3) "
+                         f"rotations, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} holds NaN or infinite values")
+    return rot, None
+
+
+def _check(kinect_fit: Any, imu_pose: Any, reliability: Any, foot_contact: Any
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    if not isinstance(kinect_fit, BodyParams):
+        raise ValueError(f"kinect_fit must be BodyParams, got {type(kinect_fit).__name__}")
+    t = kinect_fit.num_frames
+    if t < 3:
+        raise ValueError(f"fusion needs >= 3 frames, got {t}")
+    kin_rot, _ = _local_rotations(kinect_fit, "kinect_fit")
+    imu_rot, imu_transl = _local_rotations(imu_pose, "imu_pose")
+    if len(imu_rot) != t:
+        raise ValueError(f"imu_pose has {len(imu_rot)} frames, kinect_fit {t}")
+    rel = np.asarray(reliability, dtype=np.float64)
+    if rel.shape == (t,):
+        rel = np.repeat(rel[:, None], 24, axis=1)
+    if rel.shape != (t, 24):
+        raise ValueError(f"reliability must be (T,) or (T,24) with T = {t}, got {rel.shape}")
+    if not np.all(np.isfinite(rel)) or (rel < 0).any():
+        raise ValueError("reliability must be finite and >= 0")
+    fc = np.asarray(foot_contact)
+    if fc.shape != (t, len(FOOT_KEYPOINTS)) or fc.dtype != bool:
+        raise ValueError(f"foot_contact must be ({t}, {len(FOOT_KEYPOINTS)}) bool "
+                         f"({', '.join(FOOT_KEYPOINTS)}), got {fc.shape} {fc.dtype}")
+    return kin_rot, imu_rot, imu_transl, rel, fc
+
+
+def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_contact: Any,
+                model: BodyModel | None = None, config: FusionConfig | None = None
+                ) -> BodyParams:
+    """Fuse per-frame Kinect fits with the synced IMU pose over a whole sequence.
+
+    Args:
+        kinect_fit: T frames of per-frame fits (world, metres, Y up); its betas are the
+            subject's and stay fixed.
+        imu_pose: the synced IMU pose on the same frames: :class:`BodyParams` (its translation
+            then gives the motion's velocity where the fits are unreliable), or (T,24,3)
+            axis-angle / (T,24,3,3) local joint rotations, SMPL order.
+        reliability: (T,) or (T,24) >= 0 weights of the fits (per frame or per joint; 0 for a
+            fallback frame or a garbage fit, 1 for a good one), e.g. from the fit's chamfer.
+        foot_contact: (T,4) bool, the IMU's heel/toe contacts in ``FOOT_KEYPOINTS`` order.
+        model: body model (default ``config.model``); must have the foot keypoints.
+        config: scales and optimiser settings.
+
+    Returns:
+        The fused parameters (same betas).
+
+    Raises:
+        ValueError: on inputs of the wrong type, shape or frame count, NaNs, negative
+            reliabilities, or a model without foot keypoints.
+    """
+    cfg = config or FusionConfig()
+    kin_rot, imu_rot, imu_transl, rel, fc = _check(kinect_fit, imu_pose, reliability,
+                                                   foot_contact)
+    model = model if model is not None else cached_model(cfg.model, cfg.device, "float64")
+    missing = [k for k in FOOT_KEYPOINTS if k not in model.keypoint_ids]
+    if missing:
+        raise ValueError(f"the body model has no keypoint(s) {', '.join(missing)}")
+    if model.dtype != torch.float64:  # L-BFGS on these stiff terms needs double precision
+        model = copy.deepcopy(model).to(dtype=torch.float64)
+    dev, dt = model.device, model.dtype
+
+    def tensor(x: Any) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(x), dtype=dt, device=dev)
+
+    t = kinect_fit.num_frames
+    skin = Skinner(model)
+    betas = tensor(kinect_fit.betas)
+    with torch.no_grad():
+        v_shaped, rest_joints = skin.rest(betas)
+    foot_ids = torch.as_tensor([model.keypoint_ids[k] for k in FOOT_KEYPOINTS], device=dev)
+    foot_index = foot_ids.expand(t, -1)
+    clearance = (v_shaped[foot_ids, 1] - v_shaped[:, 1].min()).clamp(min=0.0)
+
+    r_imu = tensor(imu_rot)
+    r_kin = tensor(kin_rot)
+    w_rel = tensor(rel)
+    t_kin = tensor(kinect_fit.transl)
+    with torch.no_grad():
+        kin_posed = skin.pose(r_kin, rest_joints, t_kin)
+        kin_joints, kin_orient = kin_posed.joints, kin_posed.orient
+    # translation: the IMU's plus a slow correction when the IMU has one, else a free spline
+    # (starting at the Kinect translation, interpolated over unreliable frames) that only
+    # L_temp and the data terms shape
+    frame_w = rel.mean(1)
+    if imu_transl is not None:
+        t_base = tensor(imu_transl)
+        ok = frame_w > 0
+        d0 = (np.mean(kinect_fit.transl[ok] - imu_transl[ok], axis=0) if ok.any()
+              else np.zeros(3))
+        dtransl0 = np.tile(d0, (t, 1))
+    else:
+        ok = frame_w > 0
+        base = kinect_fit.transl.astype(np.float64)
+        if ok.any():
+            idx = np.arange(t)
+            base = np.stack([np.interp(idx, idx[ok], base[ok, i]) for i in range(3)], 1)
+        t_base = tensor(np.zeros((t, 3)))
+        dtransl0 = base
+    # corrections: smooth (a cubic B-spline, control points every knot_frames frames) plus an
+    # optional per-frame residual; few smooth parameters keep L-BFGS well conditioned
+    basis = tensor(_spline_basis(t, cfg.knot_frames))
+    n_knots = basis.shape[1]
+    knots = torch.zeros(n_knots, 24, 3, dtype=dt, device=dev, requires_grad=True)
+    eps = torch.zeros(t, 24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_deg > 0)
+    knots_t = torch.linalg.lstsq(basis, tensor(dtransl0)).solution.requires_grad_(True)
+    eps_t = torch.zeros(t, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_m > 0)
+    params = [p for p in (knots, eps, knots_t, eps_t) if p.requires_grad]
+
+    def corrections() -> tuple[torch.Tensor, torch.Tensor]:
+        delta = torch.einsum("tk,kjc->tjc", basis, knots) + eps
+        return delta, basis @ knots_t + eps_t
+
+    s_kin_rot = np.deg2rad(cfg.sigma_kinect_deg)
+    s_imu = np.deg2rad(cfg.sigma_imu_deg)
+    s_bias = np.deg2rad(cfg.sigma_bias_deg)
+    s_frame = np.deg2rad(cfg.sigma_frame_deg)
+    s_step = np.deg2rad(cfg.sigma_step_deg)
+    runs = contact_runs(fc)
+    contact = tensor(fc)
+
+    def forward() -> tuple[torch.Tensor, Any]:
+        delta, dtransl = corrections()
+        local = r_imu @ axis_angle_to_matrix(delta)
+        return local, skin.pose(local, rest_joints, t_base + dtransl)
+
+    def targets() -> torch.Tensor:
+        with torch.no_grad():
+            _, posed = forward()
+            feet = skin.vertices(posed, v_shaped, foot_index)
+        tgt = feet.clone()
+        for k, s, e in runs:
+            mean = feet[s:e, k].mean(0)
+            if cfg.snap_to_floor:
+                mean[1] = cfg.floor_height + clearance[k]
+            else:
+                mean[1] = torch.clamp(mean[1], min=cfg.floor_height)
+            tgt[s:e, k] = mean
+        return tgt
+
+    def loss_fn(tgt: torch.Tensor) -> torch.Tensor:
+        local, posed = forward()
+        joints = posed.joints
+        # Kinect data terms, reliability-weighted per frame and joint
+        pos = (joints - kin_joints).square().sum(-1) / cfg.sigma_kinect_m ** 2
+        rot = (posed.orient - kin_orient).square().sum((-1, -2)) / 2.0 / s_kin_rot ** 2
+        loss = (w_rel * (pos + rot)).sum()
+        # IMU: small, slowly changing correction
+        delta, _ = corrections()
+        loss = loss + delta.square().sum() / s_imu ** 2
+        loss = loss + _second_difference(knots).square().sum() / s_bias ** 2
+        if cfg.sigma_frame_deg > 0:
+            loss = loss + eps.square().sum() / s_frame ** 2
+        s_t = cfg.sigma_bias_m if imu_transl is not None else cfg.sigma_transl_knot_m
+        loss = loss + _second_difference(knots_t).square().sum() / s_t ** 2
+        if cfg.sigma_frame_m > 0:
+            loss = loss + eps_t.square().sum() / cfg.sigma_frame_m ** 2
+        # L_temp (Eq. 7)
+        loss = loss + (local[1:] - local[:-1]).square().sum() / 2.0 / s_step ** 2
+        acc = _second_difference(joints)
+        loss = loss + acc.square().sum() / cfg.sigma_acc_m ** 2
+        # L_slide (Eq. 8) and the floor
+        feet = skin.vertices(posed, v_shaped, foot_index)
+        slide = (feet - tgt).square().sum(-1) * contact
+        loss = loss + slide.sum() / cfg.sigma_slide_m ** 2
+        below = torch.clamp(cfg.floor_height - feet[..., 1], min=0.0)
+        return (loss + below.square().sum() / cfg.sigma_floor_m ** 2) / t
+
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iters,
+                            history_size=20,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+                            tolerance_change=1e-12)
+    for _ in range(cfg.rounds):
+        tgt = targets()
+
+        def closure(tgt: torch.Tensor = tgt) -> torch.Tensor:
+            opt.zero_grad(set_to_none=True)
+            loss = loss_fn(tgt)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+    with torch.no_grad():
+        local, _ = forward()
+        aa = matrix_to_axis_angle(local).double().cpu().numpy()
+        transl = (t_base + corrections()[1]).double().cpu().numpy()
+    return BodyParams(aa[:, 0], aa[:, 1:].reshape(t, 69), transl, kinect_fit.betas)
+
