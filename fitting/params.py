@@ -9,8 +9,9 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from couch.body.skeleton import NUM_BODY_JOINTS
+from couch.body.skeleton import NUM_BODY_JOINTS, PARENTS
 
 __all__ = ["BodyParams"]
 
@@ -62,6 +63,25 @@ class BodyParams:
         """The parameters of a subset of frames (same betas)."""
         return BodyParams(self.global_orient[index], self.body_pose[index], self.transl[index],
                           self.betas)
+
+    def bone_rotations(self) -> np.ndarray:
+        """(T, 24, 3, 3) world orientation of every bone (SMPL's kinematic chain composed)."""
+        t = self.num_frames
+        aa = np.concatenate([self.global_orient, self.body_pose], 1).reshape(t * 24, 3)
+        local = Rotation.from_rotvec(aa.astype(np.float64)).as_matrix().reshape(t, 24, 3, 3)
+        world = np.zeros_like(local)
+        for j in range(24):  # along the chain: a parent comes before its children
+            world[:, j] = local[:, j] if j == 0 else world[:, PARENTS[j]] @ local[:, j]
+        return world
+
+    def with_bone_rotations(self, world: np.ndarray) -> BodyParams:
+        """The same translation and shape with (T, 24, 3, 3) world bone orientations."""
+        t = self.num_frames
+        local = np.array(world, dtype=np.float64)
+        for j in range(1, 24):
+            local[:, j] = np.swapaxes(world[:, PARENTS[j]], -1, -2) @ world[:, j]
+        aa = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
+        return BodyParams(aa[:, 0], aa[:, 1:].reshape(t, 69), self.transl, self.betas)
 
     def with_betas(self, betas: np.ndarray) -> BodyParams:
         """The same poses with another shape."""

@@ -35,7 +35,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from couch.body import standing_pose
-from couch.body.skeleton import JOINT_INDEX, PARENTS
+from couch.body.skeleton import JOINT_INDEX
 from couch.fitting import BodyParams, foot_points, foot_skate, jitter, mpjpe
 from couch.fitting.body import cached_model
 from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
@@ -96,19 +96,10 @@ def _biased_imu(params: BodyParams, seed: int, deg: float = 4.0, drift_m: float 
     """Truth with a constant per-bone world-orientation bias and a drifting translation."""
     rng = np.random.default_rng(seed)
     t = params.num_frames
-    aa = np.concatenate([params.global_orient, params.body_pose], 1).reshape(t * 24, 3)
-    local = Rotation.from_rotvec(aa).as_matrix().reshape(t, 24, 3, 3)
-    world = np.zeros_like(local)
-    for j in range(24):
-        world[:, j] = local[:, j] if j == 0 else world[:, PARENTS[j]] @ local[:, j]
     bias = Rotation.from_rotvec(np.deg2rad(rng.normal(0.0, deg, (24, 3)))).as_matrix()
-    world = world @ bias[None]
-    out = world.copy()
-    for j in range(1, 24):
-        out[:, j] = np.swapaxes(world[:, PARENTS[j]], -1, -2) @ world[:, j]
-    aa = Rotation.from_matrix(out.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
+    out = params.with_bone_rotations(params.bone_rotations() @ bias[None])
     transl = params.transl + np.linspace(0, 1, t)[:, None] * np.array([drift_m, 0.0, -drift_m])
-    return BodyParams(aa[:, 0], aa[:, 1:].reshape(t, 69), transl, params.betas)
+    return dataclasses.replace(out, transl=transl)
 
 
 def _kinect(params: BodyParams, seed: int) -> tuple[BodyParams, np.ndarray]:
@@ -236,3 +227,18 @@ def test_bad_inputs(model, truth):
                     contact[:2], model)
     with pytest.raises(ValueError, match="sigma_acc_m"):
         FusionConfig(sigma_acc_m=0.0)
+
+
+def test_bone_rotations_round_trip(truth):
+    params = truth[0]
+    world = params.bone_rotations()
+    assert world.shape == (params.num_frames, 24, 3, 3)
+    back = params.with_bone_rotations(world)
+    np.testing.assert_allclose(back.body_pose, params.body_pose, atol=1e-5)
+    np.testing.assert_allclose(back.global_orient, params.global_orient, atol=1e-5)
+    # a world rotation of the pelvis alone turns every bone with it
+    turn = Rotation.from_rotvec([0.0, 0.3, 0.0]).as_matrix()
+    turned = params.with_bone_rotations(turn @ world).bone_rotations()
+    np.testing.assert_allclose(turned, turn @ world, atol=1e-5)
+    np.testing.assert_allclose(params.with_bone_rotations(turn @ world).body_pose,
+                               params.body_pose, atol=1e-5)

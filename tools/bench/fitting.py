@@ -37,7 +37,6 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from couch.body.skeleton import PARENTS
 from couch.capture.calibration import calibrate_session
 from couch.capture.pointcloud import FusedCloud, fuse_clouds
 from couch.capture.segmentation import ChairModel, segment_recording
@@ -67,19 +66,10 @@ def imu_like_init(params: BodyParams, seed: int, deg: float = 3.0, cm: float = 2
     per axis; betas unchanged. Seeded by ``seed``."""
     rng = np.random.default_rng(seed)
     t = params.num_frames
-    aa = np.concatenate([params.global_orient, params.body_pose], 1).reshape(t * 24, 3)
-    local = Rotation.from_rotvec(aa).as_matrix().reshape(t, 24, 3, 3)
-    world = np.zeros_like(local)
-    for j in range(24):
-        world[:, j] = local[:, j] if j == 0 else world[:, PARENTS[j]] @ local[:, j]
     noise = Rotation.from_rotvec(np.deg2rad(rng.normal(0.0, deg, (t * 24, 3)))).as_matrix()
-    world = world @ noise.reshape(t, 24, 3, 3)
-    out = world.copy()
-    for j in range(1, 24):
-        out[:, j] = np.swapaxes(world[:, PARENTS[j]], -1, -2) @ world[:, j]
-    aa = Rotation.from_matrix(out.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
+    out = params.with_bone_rotations(params.bone_rotations() @ noise.reshape(t, 24, 3, 3))
     transl = params.transl + rng.normal(0.0, cm / 100.0, (t, 3))
-    return BodyParams(aa[:, 0], aa[:, 1:].reshape(t, 69), transl, params.betas)
+    return dataclasses.replace(out, transl=transl)
 
 
 @dataclasses.dataclass
