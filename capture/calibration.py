@@ -62,6 +62,7 @@ from .azure_mkv import KinectFormatError, open_azure_mkv
 from .charuco import BoardSpec, board_corners_3d, camera_from_board, detect_board
 from .frames import FrameSkip, open_kinect_stream
 from .registration import depth_to_points, project_points
+from .session import SessionLayoutError, session_files
 
 __all__ = [
     "BoardObservations",
@@ -865,21 +866,18 @@ def calibrate_session(session_dir: str | os.PathLike, *,
             :func:`read_extrinsics`; given extrinsics lacking one of the session's cameras.
     """
     root = Path(session_dir)
-    manifest_path = root / "session.json"
-    board_doc = None
-    if manifest_path.is_file():
-        try:
-            manifest = json.loads(manifest_path.read_text())
-            kinects = manifest["kinect"]
-            captures = {str(k["serial"]): root / k["calibration_capture"] for k in kinects}
-            sessions = {str(k["serial"]): root / k["file"] for k in kinects if k.get("file")}
-            board_doc = manifest.get("board")
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise CalibrationError(f"{manifest_path}: malformed session manifest ({exc!r})"
-                                   ) from None
-    else:
-        captures = {p.stem: p for p in sorted((root / "calibration").glob("*.mkv"))}
-        sessions = {p.stem: p for p in sorted((root / "kinect").glob("*.mkv"))}
+    try:
+        files = session_files(root)
+    except SessionLayoutError as exc:
+        raise CalibrationError(str(exc)) from None
+    uncaptured = [c.serial for c in files.cameras if c.calibration_capture is None]
+    if files.manifest is not None and uncaptured:
+        raise CalibrationError(f"{files.manifest}: no calibration_capture for camera(s) "
+                               f"{', '.join(uncaptured)}")
+    captures = {c.serial: c.calibration_capture for c in files.cameras
+                if c.calibration_capture is not None}
+    sessions = {c.serial: c.recording for c in files.cameras if c.recording is not None}
+    board_doc = files.board
     if given is not None:
         ext = given if isinstance(given, Extrinsics) else read_extrinsics(given)
         lacking = [s for s in captures if s not in ext.cameras]

@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import logging
 import os
 from collections.abc import Iterable, Iterator
@@ -74,6 +73,7 @@ from couch.geometry import apply_transform, invert_transform
 from .azure_calibration import KinectCalibration
 from .azure_mkv import open_azure_mkv
 from .registration import pixel_rays, project_points, register_depth_to_color
+from .session import SessionLayoutError, session_files
 
 __all__ = [
     "BackgroundModel",
@@ -258,21 +258,15 @@ def empty_room_recording(session_dir: str | os.PathLike, serial: str) -> Path | 
         SegmentationError: the manifest names a file that does not exist.
     """
     root = Path(session_dir)
-    manifest = root / "session.json"
-    if manifest.is_file():
-        try:
-            kinects = json.loads(manifest.read_text())["kinect"]
-            entry = next((k for k in kinects if str(k.get("serial")) == str(serial)), None)
-        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
-            raise SegmentationError(f"{manifest}: malformed session manifest ({e!r})") from None
-        if entry is not None and "background" in entry:
-            if entry["background"] is None:
-                return None
-            path = root / entry["background"]
-            if not path.is_file():
-                raise SegmentationError(f"{manifest}: camera {serial}'s background recording "
-                                        f"{path} does not exist")
-            return path
+    try:
+        cam = session_files(root).camera(serial)
+    except SessionLayoutError as exc:
+        raise SegmentationError(str(exc)) from None
+    if cam is not None:
+        if cam.background is not None and not cam.background.is_file():
+            raise SegmentationError(f"{root / 'session.json'}: camera {serial}'s background "
+                                    f"recording {cam.background} does not exist")
+        return cam.background
     path = root / "background" / f"{serial}.mkv"
     return path if path.is_file() else None
 

@@ -8,7 +8,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 from couch.capture.calibration import Extrinsics, calibrate_session
 from couch.capture.imu import ImuMotion, mvnx_to_smpl
 from couch.capture.mvnx import read_mvnx
+from couch.capture.session import session_files
 from couch.sync.clock import ClockEstimate, ClockModel, ClockSyncConfig
 from couch.sync.imu import sync_imu
 from couch.sync.kinect import KinectSync, KinectSyncConfig, sync_tracks
@@ -60,21 +60,17 @@ class SessionSync:
 
 def session_mvnx(session_dir: str | os.PathLike) -> Path | None:
     """The session's MVNX file: ``session.json`` ``imu.mvnx``, else ``imu/*.mvnx`` (None: no
-    IMU recording)."""
-    root = Path(session_dir)
-    manifest = root / "session.json"
-    if manifest.is_file():
-        try:
-            entry = (json.loads(manifest.read_text()).get("imu") or {}).get("mvnx")
-        except (json.JSONDecodeError, AttributeError) as exc:
-            raise ValueError(f"{manifest}: malformed session manifest ({exc!r})") from None
-        if entry:
-            path = root / entry
-            if not path.is_file():
-                raise FileNotFoundError(f"{manifest}: the IMU recording {path} does not exist")
-            return path
-    found = sorted((root / "imu").glob("*.mvnx"))
-    return found[0] if found else None
+    IMU recording).
+
+    Raises:
+        ValueError: a malformed ``session.json``.
+        FileNotFoundError: the MVNX file it names does not exist.
+    """
+    files = session_files(session_dir)
+    if files.mvnx is not None and not files.mvnx.is_file():
+        raise FileNotFoundError(f"{files.manifest}: the IMU recording {files.mvnx} does not "
+                                f"exist")
+    return files.mvnx
 
 
 def sync_session(session_dir: str | os.PathLike, *,

@@ -26,7 +26,6 @@ master clock.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -47,6 +46,7 @@ from couch.capture.segmentation import (
     empty_room_recording,
     foreground,
 )
+from couch.capture.session import session_files
 
 __all__ = ["CameraTrack", "TrackConfig", "camera_track", "session_streams", "session_tracks"]
 
@@ -253,23 +253,9 @@ def session_streams(session_dir: str | os.PathLike) -> list[tuple[str, Path, Pat
         ValueError: a malformed ``session.json``.
     """
     root = Path(session_dir)
-    manifest = root / "session.json"
-    out: list[tuple[str, Path, Path | None, str]] = []
-    if manifest.is_file():
-        try:
-            doc = json.loads(manifest.read_text())
-            for k in doc["kinect"]:
-                if not k.get("file"):
-                    continue
-                cal = k.get("calibration_capture")
-                out.append((str(k["serial"]), root / k["file"], root / cal if cal else None,
-                            str(k.get("sync", ""))))
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise ValueError(f"{manifest}: malformed session manifest ({exc!r})") from None
-    else:
-        for p in sorted((root / "kinect").glob("*.mkv")):
-            cal = root / "calibration" / p.name
-            out.append((p.stem, p, cal if cal.is_file() else None, ""))
+    files = session_files(root)  # SessionLayoutError (a ValueError) when malformed
+    out = [(c.serial, c.recording, c.calibration_capture, c.sync) for c in files.cameras
+           if c.recording is not None]
     if not out:
         raise FileNotFoundError(f"{root}: no Kinect recordings (session.json kinect[].file or "
                                 f"kinect/*.mkv)")

@@ -21,14 +21,15 @@ import numpy as np
 
 from couch.capture.frames import open_kinect_stream
 from couch.capture.pointcloud import fuse_clouds
-from couch.capture.segmentation import empty_room_recording, segment_recording
+from couch.capture.segmentation import segment_recording
+from couch.capture.session import session_files
 
 
 def bench(session: Path) -> None:
-    manifest = json.loads((session / "session.json").read_text())
     truth = json.loads((session / "truth.json").read_text())
     poses = {c["serial"]: np.asarray(c["world_from_depth"]) for c in truth["cameras"]}
-    files = {d["serial"]: session / d["file"] for d in manifest["kinect"]}
+    layout = session_files(session)
+    files = {c.serial: c.recording for c in layout.cameras if c.recording is not None}
     fps = open_kinect_stream(next(iter(files.values()))).fps
 
     start = time.perf_counter()
@@ -39,7 +40,7 @@ def bench(session: Path) -> None:
             frames += 1
     read_s = time.perf_counter() - start
 
-    rooms = {s: empty_room_recording(session, s) for s in files}
+    rooms = {c.serial: c.background for c in layout.cameras}
     start = time.perf_counter()
     segs = {s: segment_recording(p, poses[s], empty_room=rooms[s]) for s, p in files.items()}
     seg_s = time.perf_counter() - start
