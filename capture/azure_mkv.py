@@ -269,8 +269,9 @@ class _Track:
 class AzureMkvWriter:
     """Write an Azure Kinect recording laid out as ``k4arecorder --imu OFF`` writes it.
 
-    Tracks: COLOR (MJPG, ``calibration.color_resolution``), DEPTH (unless the depth mode is
-    PASSIVE_IR) and IR, all ``V_MS/VFW/FOURCC``; the calibration is attached as
+    Tracks: COLOR (MJPG, ``calibration.color_resolution``; none with ``color=False``), DEPTH
+    (unless the depth mode is PASSIVE_IR) and IR, all ``V_MS/VFW/FOURCC``, numbered from 1 in
+    that order; the calibration is attached as
     ``calibration.json``. Frames are written to disk as they come (only the newest one or two
     32 ms cluster windows are held in memory) into a temporary file beside ``path`` that
     replaces ``path`` on :meth:`close`; on an exception inside ``with`` (or :meth:`abort`) the
@@ -294,6 +295,12 @@ class AzureMkvWriter:
             (defaults are versions seen in real recordings).
         uid_seed: seed for the track/attachment UIDs (``None``: random, as the SDK).
         creation_time: the Info DateUTC (``None``: now).
+        color: False records depth only, as ``k4arecorder --color-mode OFF`` (record.cpp with
+            ``K4A_COLOR_RESOLUTION_OFF``): no COLOR track and no ``K4A_COLOR_TRACK``/
+            ``K4A_COLOR_MODE`` tags (readers report colour mode ``OFF``), and no
+            ``K4A_DEPTH_DELAY_NS`` (the SDK writes it only with colour and depth on, so
+            ``depth_delay_ns`` must be 0); DEPTH becomes track 1, which the Cues index. The
+            firmware tags and the calibration attachment are written as with colour.
     """
 
     def __init__(self, path: str | os.PathLike, calibration: KinectCalibration, *,
@@ -301,7 +308,7 @@ class AzureMkvWriter:
                  wired_sync_mode: str = "STANDALONE", subordinate_delay_ns: int = 0,
                  depth_delay_ns: int = 0, color_firmware_version: str = "1.6.110",
                  depth_firmware_version: str = "1.6.79", uid_seed: int | None = None,
-                 creation_time: _dt.datetime | None = None) -> None:
+                 creation_time: _dt.datetime | None = None, color: bool = True) -> None:
         if not isinstance(calibration, KinectCalibration):
             raise TypeError(f"calibration must be a KinectCalibration, got "
                             f"{type(calibration).__name__}")
@@ -320,6 +327,9 @@ class AzureMkvWriter:
         if abs(depth_delay_ns) >= self.frame_period_ns:
             raise ValueError(f"|depth_delay_ns| must be less than one frame period "
                              f"({self.frame_period_ns} ns at {fps} fps), got {depth_delay_ns}")
+        if not color and depth_delay_ns:
+            raise ValueError(f"depth_delay_ns is the delay of depth after colour; a recording "
+                             f"without colour has none, got {depth_delay_ns}")
         if subordinate_delay_ns < 0:
             raise ValueError(f"subordinate_delay_ns must be >= 0, got {subordinate_delay_ns}")
         if start_offset_ns is not None and (int(start_offset_ns) != start_offset_ns
@@ -341,12 +351,14 @@ class AzureMkvWriter:
 
         depth_mode = calibration.depth_mode
         dmode = DEPTH_MODES[depth_mode]
-        cmode = COLOR_RESOLUTIONS[calibration.color_resolution]
-        self.color_mode = f"MJPG_{cmode.height}P"
         self._tracks: dict[str, _Track] = {}
-        self._tracks["COLOR"] = self._new_track(
-            "COLOR", cmode.width, cmode.height,
-            _bitmapinfoheader(cmode.width, cmode.height, 24, FOURCC_MJPG, 0))
+        self.color_mode = "OFF"  # record.cpp's mode string without colour (it is not tagged)
+        if color:
+            cmode = COLOR_RESOLUTIONS[calibration.color_resolution]
+            self.color_mode = f"MJPG_{cmode.height}P"
+            self._tracks["COLOR"] = self._new_track(
+                "COLOR", cmode.width, cmode.height,
+                _bitmapinfoheader(cmode.width, cmode.height, 24, FOURCC_MJPG, 0))
         b16g = _bitmapinfoheader(dmode.width, dmode.height, 16, FOURCC_B16G,
                                  dmode.width * dmode.height * 2)
         if depth_mode != "PASSIVE_IR":
@@ -367,7 +379,8 @@ class AzureMkvWriter:
             else:
                 tags.append(("K4A_IR_MODE", "PASSIVE" if depth_mode == "PASSIVE_IR" else "ACTIVE",
                              "TRACK", t.uid))
-        tags.append(("K4A_DEPTH_DELAY_NS", str(self.depth_delay_ns), None, 0))
+        if color:  # record.cpp: only with colour and depth both on (depth always is here)
+            tags.append(("K4A_DEPTH_DELAY_NS", str(self.depth_delay_ns), None, 0))
         tags.append(("K4A_WIRED_SYNC_MODE", wired_sync_mode, None, 0))
         if wired_sync_mode == "SUBORDINATE":
             tags.append(("K4A_SUBORDINATE_DELAY_NS", str(int(subordinate_delay_ns)), None, 0))
@@ -414,7 +427,8 @@ class AzureMkvWriter:
         Args:
             timestamp_us: device timestamp of the depth/IR images in µs (colour is stamped
                 ``timestamp_us - depth_delay_ns/1000``); strictly increasing per track.
-            color_jpeg: one MJPEG frame of the colour mode's size, or ``None`` (dropped).
+            color_jpeg: one MJPEG frame of the colour mode's size, or ``None`` (dropped;
+                always None for a writer made with ``color=False``).
             depth_mm: (H,W) uint16 depth in mm (0 = invalid) of the depth mode's size, or None.
             ir: (H,W) uint16 IR image of the depth mode's size, or ``None``.
         """
@@ -425,9 +439,12 @@ class AzureMkvWriter:
         ts_ns = int(timestamp_us) * 1000
         blocks: list[tuple[int, str, bytes]] = []
         if color_jpeg is not None:
+            color = self._tracks.get("COLOR")
+            if color is None:
+                raise ValueError(f"frame at {timestamp_us} µs: color_jpeg given, but this "
+                                 f"recording has no COLOR track (color=False)")
             data = bytes(color_jpeg)
             size = _jpeg_size(data)
-            color = self._tracks["COLOR"]
             if size is None:
                 raise ValueError(f"frame at {timestamp_us} µs: color_jpeg is not a JPEG (no SOI "
                                  f"marker or no frame header)")

@@ -12,9 +12,11 @@ Public API
   require_calibration=True)`` -> :class:`KinectStream`; iterate it for :class:`KinectFrame`, one
   frame in memory at a time (every iteration streams the source afresh).
 * :class:`KinectStream` — ``calibration`` (:class:`KinectCalibration`), ``serial``, ``fps``,
-  ``kind`` (``"mkv"``/``"behave"``), ``depth_grid``, ``skipped`` (:class:`FrameSkip`),
-  ``warnings``, ``reader`` (the underlying :class:`AzureMkvRecording`/:class:`BehaveSequence`).
-* :class:`KinectFrame` — one frame; :meth:`KinectFrame.color_rgb` decodes its colour on demand.
+  ``kind`` (``"mkv"``/``"behave"``), ``depth_grid``, ``has_color``, ``skipped``
+  (:class:`FrameSkip`), ``warnings``, ``reader`` (the underlying
+  :class:`AzureMkvRecording`/:class:`BehaveSequence`).
+* :class:`KinectFrame` — one frame; :meth:`KinectFrame.color_rgb` decodes its colour on demand
+  (None without one), :meth:`KinectFrame.require_color` raises instead.
 * :class:`FrameSkip` — an image (or a stretch of a file) that could not be used, and why.
 
 Units and frames
@@ -30,7 +32,13 @@ Units and frames
 * ``ir``: (H,W) uint16 raw IR intensity in the depth grid (MKV only; None for BEHAVE).
 * colour: (H,W,3) uint8 **RGB** in the colour camera's pixels (``calibration.color``), decoded
   from the stored JPEG/PNG only when :meth:`KinectFrame.color_rgb` is called;
-  ``color_data`` holds the encoded bytes.
+  ``color_data`` holds the encoded bytes. A depth-only MKV (``k4arecorder --color-mode OFF``,
+  ``couch-simulate --no-color``) has no COLOR track: :attr:`KinectStream.has_color` is False,
+  every frame's ``color_data`` is None and :meth:`KinectFrame.color_rgb` returns None (nothing
+  is counted as skipped: there was no colour to lose); :meth:`KinectFrame.require_color`
+  raises instead, naming the recording. Its ``calibration.color`` is then the calibration
+  file's full-resolution (3072P) colour camera, as the reader has no colour mode to specialise
+  it to.
 
 Bad input
 ---------
@@ -128,6 +136,7 @@ class KinectFrame:
     _decoder: Callable[[], np.ndarray] | None = dataclasses.field(default=None, repr=False)
     _report: Callable[[KinectFrame, str], None] | None = dataclasses.field(default=None,
                                                                            repr=False)
+    _stream_has_color: bool = dataclasses.field(default=True, repr=False)
     _rgb: np.ndarray | None = dataclasses.field(default=None, init=False, repr=False)
     _color_error: str | None = dataclasses.field(default=None, init=False, repr=False)
 
@@ -135,6 +144,24 @@ class KinectFrame:
     def has_color(self) -> bool:
         """Whether the frame carries a colour image (it may still fail to decode)."""
         return self.color_data is not None
+
+    def require_color(self) -> np.ndarray:
+        """The colour image as (H,W,3) uint8 RGB, like :meth:`color_rgb`, for callers that
+        cannot go on without it.
+
+        Raises:
+            KinectFormatError: the frame has no colour image (naming the source, and saying
+                when the whole recording has no COLOR track), or it cannot be decoded.
+        """
+        rgb = self.color_rgb()
+        if rgb is not None:
+            return rgb
+        if self._color_error is not None:
+            raise KinectFormatError(self._color_error)
+        if not self._stream_has_color:
+            raise KinectFormatError(f"{self.source}: no colour: the recording has no COLOR "
+                                    f"track (recorded depth-only, colour mode OFF)")
+        raise KinectFormatError(f"{self.source}: no colour image in this frame (dropped)")
 
     @property
     def color_error(self) -> str | None:
@@ -184,6 +211,8 @@ class KinectStream:
         fps: frames per second (MKV: from the tracks' DefaultDuration; BEHAVE: from the frame
             folders' spacing, snapped to 5/15/30 when within 10 %).
         depth_grid: ``"depth"`` (MKV) or ``"color"`` (BEHAVE), see :class:`KinectFrame`.
+        has_color: whether the source records colour at all (False: an MKV without a COLOR
+            track; its frames have no colour). A BEHAVE sequence always has colour.
         reader: the :class:`AzureMkvRecording` or :class:`BehaveSequence` underneath.
     """
 
@@ -198,6 +227,7 @@ class KinectStream:
         if isinstance(reader, AzureMkvRecording):
             self.kind = "mkv"
             self.depth_grid = "depth"
+            self.has_color = "COLOR" in reader.tracks
             self.fps = float(reader.fps)
             serial = reader.serial or (reader.calibration.serial if reader.has_calibration
                                        else None)
@@ -206,6 +236,7 @@ class KinectStream:
             assert kinect is not None
             self.kind = "behave"
             self.depth_grid = "color"
+            self.has_color = True
             self.serial = reader.calibrations[kinect].serial or f"k{kinect}"
             self.fps = self._behave_fps(reader)
 
@@ -290,7 +321,7 @@ class KinectStream:
                               depth_mm=cap.depth_mm, ir=cap.ir, color_data=cap.color_jpeg,
                               color_timestamp_us=cap.color_timestamp_us, depth_grid="depth",
                               source=f"{self.path} capture {cap.index}",
-                              _report=self._color_failed)
+                              _report=self._color_failed, _stream_has_color=self.has_color)
 
     def _iter_behave(self, seq: BehaveSequence) -> Iterator[KinectFrame]:
         assert self.kinect is not None

@@ -272,6 +272,47 @@ def test_passive_ir_has_no_depth_track(tmp_path, calibration, frames):
         assert [s.metadata["title"] for s in c.streams.video] == ["COLOR", "IR"]
 
 
+def test_colour_off_is_written_as_k4arecorder_color_mode_off(tmp_path, calibration, frames):
+    """``color=False``: what record.cpp writes with K4A_COLOR_RESOLUTION_OFF: no COLOR track and
+    no K4A_COLOR_TRACK / K4A_COLOR_MODE / K4A_DEPTH_DELAY_NS tags; DEPTH is track 1 (indexed by
+    the Cues); firmware tags and calibration as with colour."""
+    path = tmp_path / "depth_only.mkv"
+    stamps = [T0_US + i * PERIOD_US for i in range(N_FRAMES)]
+    with AzureMkvWriter(path, calibration, uid_seed=3, color=False) as w:
+        assert w.color_mode == "OFF"
+        with pytest.raises(ValueError, match="no COLOR track"):
+            w.write(stamps[0], frames[0][0], frames[0][1])
+        for ts, (_, depth, ir) in zip(stamps, frames, strict=True):
+            w.write(ts, depth_mm=depth, ir=ir)
+    with pytest.raises(ValueError, match="without colour"):
+        AzureMkvWriter(tmp_path / "x.mkv", calibration, color=False, depth_delay_ns=-2000)
+    rec = open_azure_mkv(path)
+    assert sorted(rec.tracks) == ["DEPTH", "IR"] and rec.tracks["DEPTH"].number == 1
+    assert (rec.color_mode, rec.color_resolution, rec.depth_delay_ns) == ("OFF", "OFF", 0)
+    for tag in ("K4A_COLOR_TRACK", "K4A_COLOR_MODE", "K4A_DEPTH_DELAY_NS"):
+        assert tag not in rec.tags
+    assert rec.tags["K4A_COLOR_FIRMWARE_VERSION"] and rec.serial == "000111222333"
+    caps = list(rec)
+    assert [c.timestamp_us for c in caps] == stamps
+    for cap, (_, depth, ir) in zip(caps, frames, strict=True):
+        assert cap.color_jpeg is None and cap.color_timestamp_us is None
+        np.testing.assert_array_equal(cap.depth_mm, depth)
+        np.testing.assert_array_equal(cap.ir, ir)
+    with av.open(str(path)) as c:  # an independent reader sees the same
+        assert [s.metadata.get("title") for s in c.streams.video] == ["DEPTH", "IR"]
+        assert "K4A_DEPTH_DELAY_NS" not in c.metadata
+        decoded = [f.to_ndarray() for f in c.decode(c.streams.video[0])]
+    assert all(np.array_equal(a, f[1]) for a, f in zip(decoded, frames, strict=True))
+    # the Cues index the first track, now DEPTH
+    buf = path.read_bytes()
+    seg_data, seg_end = _segment(buf)
+    (cues,) = [e for e in _ebml(buf, seg_data, seg_end) if e[0] == 0x1C53BB6B]
+    cue_tracks = [buf[x:y] for _, _, a, b in _ebml(buf, cues[2], cues[3])  # CuePoint
+                  for k, _, c, d in _ebml(buf, a, b) if k == 0xB7  # CueTrackPositions
+                  for j, _, x, y in _ebml(buf, c, d) if j == 0xF7]  # CueTrack
+    assert cue_tracks and set(cue_tracks) == {b"\x01"}
+
+
 def test_writer_streams_and_is_atomic(tmp_path, calibration, frames):
     path = tmp_path / "stream.mkv"
     jpg, depth, ir = frames[0]

@@ -82,8 +82,35 @@ def test_mkv_camera_selection(mkv):
 
 
 def test_frame_without_colour():
-    f = KinectFrame(index=0, timestamp_us=0, depth_mm=None)
+    f = KinectFrame(index=0, timestamp_us=0, depth_mm=None, source="cam.mkv capture 0")
     assert not f.has_color and f.color_rgb() is None and f.color_error is None
+    with pytest.raises(KinectFormatError, match=r"cam\.mkv capture 0: no colour image"):
+        f.require_color()
+
+
+def test_depth_only_mkv_stream(mkv, tmp_path):
+    """A recording without a COLOR track (k4arecorder --color-mode OFF): depth as usual, no
+    colour on any frame, nothing counted as skipped, and a clear error where colour is
+    required."""
+    _, cal = mkv
+    path = tmp_path / "depth_only.mkv"
+    with AzureMkvWriter(path, cal, fps=15, color=False) as w:
+        for i, ts in enumerate(STAMPS):
+            w.write(ts, depth_mm=_depth(i, (288, 320)))
+    stream = open_kinect_stream(path)
+    assert not stream.has_color and stream.reader.color_mode == "OFF"
+    assert stream.calibration.depth == cal.depth  # the depth camera is all there is to use
+    frames = list(stream)
+    assert [f.timestamp_us for f in frames] == STAMPS
+    for i, f in enumerate(frames):
+        np.testing.assert_array_equal(f.depth_mm, _depth(i, (288, 320)))
+        assert not f.has_color and f.color_rgb() is None and f.color_error is None
+    assert stream.skipped == [] and stream.warnings == []
+    with pytest.raises(KinectFormatError, match=r"depth_only\.mkv capture 0: .*no COLOR track"):
+        frames[0].require_color()
+    # with colour, require_color is color_rgb
+    first = next(iter(open_kinect_stream(mkv[0])))
+    assert open_kinect_stream(mkv[0]).has_color and first.require_color() is first.color_rgb()
 
 
 @pytest.fixture(scope="module")

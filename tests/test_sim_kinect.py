@@ -327,6 +327,22 @@ def test_masks_labels_and_jpeg(calib: KinectCalibration) -> None:
     assert set(np.unique(depth.label)) == {0, 1, 2}
 
 
+@pytest.mark.parametrize("noise", [None, kinect.ColorNoise.none()], ids=["noisy", "perfect"])
+def test_skip_color_draws_what_render_color_draws(calib: KinectCalibration, noise) -> None:
+    """A depth-only recording skips the colour render but consumes its random draws: the
+    shared generator ends where a colour render leaves it (without a scene: the draws never
+    depend on what is seen), so the next depth frame is the same."""
+    scene = kinect.build_scene([sphere(np.array([0, 0, 2.0]), 0.5, label=1),
+                                plane([0, 0, 3.0], [0, 0, -1])])
+    rendered, skipped = np.random.default_rng(4), np.random.default_rng(4)
+    kinect.render_color(scene, calib, POSE, kinect.Light(), rendered, noise=noise)
+    kinect.skip_color(calib, skipped, noise=noise)
+    assert rendered.bit_generator.state == skipped.bit_generator.state
+    a = kinect.render_depth(scene, calib, POSE, DepthNoise(), rendered)
+    b = kinect.render_depth(scene, calib, POSE, DepthNoise(), skipped)
+    np.testing.assert_array_equal(a.depth_mm, b.depth_mm)
+
+
 def test_textures_give_colour_signal(calib: KinectCalibration) -> None:
     def grey_std(texture: str | None) -> float:
         floor = plane([0, 0, 2.0], [0, 0, -1], color=(0.6, 0.5, 0.4), texture=texture)

@@ -7,6 +7,7 @@ and drift +150 ppm, seed 11.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -222,6 +223,80 @@ def test_contact_sheet_tool(session, tmp_path):
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 4 * 200  # one row per camera
     assert contact_sheet_main([str(tmp_path / "nothing")]) == 1
+
+
+@pytest.fixture(scope="module")
+def depth_only(session, tmp_path_factory) -> tuple[Path, dict, int]:
+    """The same session (same seed) with ``color=False``, and how many colour images the
+    simulator rendered for it (a spy on ``render_color``)."""
+    out = tmp_path_factory.mktemp("depth_only")
+    rendered = 0
+    real = recording.render_color
+
+    def spy(*args, **kwargs):
+        nonlocal rendered
+        rendered += 1
+        return real(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(recording, "render_color", spy)
+        info = simulate_session(out, dataclasses.replace(CFG, color=False), progress=False)
+    return out, info, rendered
+
+
+def test_depth_only_session_is_the_colour_session_without_colour(session, depth_only):
+    """``color=False`` (--no-color): kinect/ and background/ have no COLOR track (as
+    ``k4arecorder --color-mode OFF`` writes), their depth and timestamps are exactly the colour
+    session's, colour is rendered only for the ChArUco captures, and everything else (the
+    captures, IMU, truth) is byte for byte the same."""
+    out, info = session
+    out_d, info_d, rendered = depth_only
+    assert rendered == CFG.charuco_poses * CFG.cameras  # the calibration captures only
+    assert info_d["cameras"] == info["cameras"] and info_d["imu"] == info["imu"]
+    assert info_d["config"] == {**info["config"], "color": False}
+    assert "color" not in info["config"]  # colour sessions keep their truth.json bytes
+    manifest = json.loads((out / "session.json").read_text())
+    for dev in manifest["kinect"]:
+        for key in ("file", "background"):
+            ours, theirs = open_azure_mkv(out_d / dev[key]), open_azure_mkv(out / dev[key])
+            assert sorted(ours.tracks) == ["DEPTH", "IR"] and ours.color_mode == "OFF"
+            assert "K4A_COLOR_MODE" not in ours.tags and "COLOR" in theirs.tracks
+            with av.open(str(out_d / dev[key])) as c:  # an independent reader agrees
+                assert [s.metadata.get("title") for s in c.streams.video] == ["DEPTH", "IR"]
+            a, b = list(ours), list(theirs)
+            assert len(a) == len(b) > 0
+            for x, y in zip(a, b, strict=True):
+                assert x.color_jpeg is None and x.timestamp_us == y.timestamp_us
+                np.testing.assert_array_equal(x.depth_mm, y.depth_mm)
+        # the ChArUco captures keep colour: identical files
+        cal = dev["calibration_capture"]
+        assert (out_d / cal).read_bytes() == (out / cal).read_bytes()
+    for name in ("session.json", "imu/recording.mvnx", "imu/xbus.bin", CLOTHING_FILE):
+        assert (out_d / name).read_bytes() == (out / name).read_bytes(), name
+    truth, truth_d = read_processed(out / "ground_truth.h5"), read_processed(
+        out_d / "ground_truth.h5")
+    np.testing.assert_array_equal(truth_d.joints, truth.joints)
+    np.testing.assert_array_equal(truth_d.time, truth.time)
+
+
+def test_depth_only_contact_sheet_says_so(depth_only, tmp_path):
+    out, _, _ = depth_only
+    png = tmp_path / "sheet.png"
+    assert contact_sheet_main([str(out), "-o", str(png), "--frame", "3"]) == 0
+    import cv2
+
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] > 4 * 200
+
+
+def test_no_color_needs_mkv_without_masks(tmp_path, capsys):
+    from couch.tools.sim.session import main
+
+    with pytest.raises(ValueError, match="--no-color needs --format mkv"):
+        simulate_session(tmp_path, SessionConfig(color=False, fmt="frames"), progress=False)
+    assert main([str(tmp_path / "s"), "--no-color", "--masks", "--quiet"]) == 1
+    assert "need colour" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
 
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"

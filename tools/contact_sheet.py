@@ -2,7 +2,8 @@
 
 Reads the recordings back through the capture stage's own reader
 (:func:`couch.capture.frames.open_kinect_stream`), so what it shows is what the pipeline will see.
-Depth is colour-mapped over 0.5–4 m (black = invalid).
+Depth is colour-mapped over 0.5–4 m (black = invalid). A depth-only recording (no COLOR track,
+e.g. ``couch-simulate --no-color``) gets a grey "no colour track" panel in place of colour.
 """
 
 from __future__ import annotations
@@ -31,21 +32,37 @@ def _fit(image: np.ndarray, height: int) -> np.ndarray:
     return cv2.resize(image, (w, height), interpolation=cv2.INTER_AREA)
 
 
+def _no_color_panel(depth_shape: tuple[int, int], height: int) -> np.ndarray:
+    """(height, W, 3) uint8 grey placeholder, as wide as the fitted depth image, that says the
+    recording has no colour (a blank would look like a failed decode)."""
+    width = round(depth_shape[1] * height / depth_shape[0])
+    panel = np.full((height, width, 3), 90, np.uint8)
+    for text, y in (("no colour track", height // 2 - 6), ("(depth-only recording)",
+                                                            height // 2 + 18)):
+        cv2.putText(panel, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (230, 230, 230), 1)
+    return panel
+
+
 def contact_sheet(recordings: list[Path], frame: int, row_height: int = 240) -> np.ndarray:
-    """(H,W,3) uint8 RGB: one row per recording, its colour and depth images of ``frame``."""
+    """(H,W,3) uint8 RGB: one row per recording, its colour and depth images of ``frame``
+    (a placeholder panel instead of colour for a recording without a COLOR track)."""
     rows = []
     for path in recordings:
         stream = open_kinect_stream(path)
         found = None
         for f in stream:
             # a colour frame that does not decode is counted in stream.skipped: take the next
-            if f.index >= frame and f.depth_mm is not None and f.color_rgb() is not None:
+            if f.index >= frame and f.depth_mm is not None and (
+                    not stream.has_color or f.color_rgb() is not None):
                 found = f
                 break
         if found is None:
-            raise KinectFormatError(f"{path}: no capture with colour and depth at or after "
-                                    f"frame {frame}")
-        color = _fit(found.color_rgb(), row_height)
+            wanted = "colour and depth" if stream.has_color else "depth"
+            raise KinectFormatError(f"{path}: no capture with {wanted} at or after frame "
+                                    f"{frame}")
+        rgb = found.color_rgb()
+        color = (_fit(rgb, row_height) if rgb is not None
+                 else _no_color_panel(found.depth_mm.shape, row_height))
         depth = _fit(colorize_depth(found.depth_mm), row_height)
         row = np.concatenate([color, np.full((row_height, 6, 3), 255, np.uint8), depth], 1)
         label = f"{stream.serial}  t={found.timestamp_us / 1e6:.3f}s"

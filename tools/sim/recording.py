@@ -47,6 +47,7 @@ from couch.tools.sim.kinect import (
     place_cameras,
     render_color,
     render_depth,
+    skip_color,
     world_from_color,
 )
 from couch.tools.sim.motion import DENSE_HZ
@@ -185,12 +186,17 @@ def behave_sequence_name(cfg: SessionConfig, seq: SimulatedSequence) -> str:
 
 def _writer_options(cfg: SessionConfig, device: int, calibration: bool = False
                     ) -> dict[str, Any]:
-    """MKV writer settings: sync role, and seeded UIDs and a fixed creation date so that the
-    same seed writes the same bytes."""
+    """MKV writer settings: sync role, colour on or off, and seeded UIDs and a fixed creation
+    date so that the same seed writes the same bytes. The ChArUco captures always record colour
+    (the board is detected in it)."""
     start = _dt.datetime(2026, 1, 1, 12, 0, tzinfo=_dt.UTC) + _dt.timedelta(minutes=cfg.seed)
-    return {"fps": round(cfg.fps), "wired_sync_mode": "MASTER" if device == 0 else "SUBORDINATE",
-            "uid_seed": cfg.seed * 1000 + device * 2 + calibration,
-            "creation_time": start - _dt.timedelta(minutes=5) if calibration else start}
+    options: dict[str, Any] = {
+        "fps": round(cfg.fps), "wired_sync_mode": "MASTER" if device == 0 else "SUBORDINATE",
+        "uid_seed": cfg.seed * 1000 + device * 2 + calibration,
+        "creation_time": start - _dt.timedelta(minutes=5) if calibration else start}
+    if not (cfg.color or calibration):
+        options["color"] = False
+    return options
 
 
 def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
@@ -198,7 +204,11 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                    rng_imu: np.random.Generator, rng_noise: np.random.Generator,
                    motion_offset: float = 0.0, progress: bool = True) -> dict[str, Any]:
     """Write kinect/, calibration/, background/, imu/ (and masks/) and truth_clothing.npz under
-    ``out``; return their truth."""
+    ``out``; return their truth.
+
+    With ``cfg.color`` False the kinect/ and background/ recordings are depth-only and their
+    colour is never rendered; :func:`skip_color` consumes the colour frames' random draws
+    instead, so every depth frame (and the calibration captures) is the same as with colour."""
     times = truth.time
     n = len(times)
     chair_pos = seq.placement.world_from_chair[:3, 3]
@@ -268,6 +278,10 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                     if k in dev["dropped"]:
                         continue
                     depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
+                    if not cfg.color:  # mkv only, without masks (simulate_session checks)
+                        skip_color(dev["calib"], rng_noise)
+                        writers[i].write(int(dev["stamps"][k]), depth_mm=depth.depth_mm)
+                        continue
                     color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
                                          cfg.jpeg_quality)
                     if frames_mode:
@@ -353,9 +367,10 @@ def _record_background(out: Path, cfg: SessionConfig, devices: list[dict[str, An
                        offsets: list[float], scene: SimScene, noise: DepthNoise, light: Light,
                        rng: np.random.Generator) -> list[str | None]:
     """Write ``cfg.background_frames`` frames of the empty room per camera to
-    ``out/<serial>.mkv`` (as k4arecorder would: COLOR + DEPTH at the session's rate, recorded
-    10 minutes before the session); return each camera's path relative to the session folder
-    (None per camera when no frames are asked for)."""
+    ``out/<serial>.mkv`` (as k4arecorder would: COLOR + DEPTH, or DEPTH alone without
+    ``cfg.color``, at the session's rate, recorded 10 minutes before the session); return each
+    camera's path relative to the session folder (None per camera when no frames are asked
+    for)."""
     if cfg.background_frames <= 0:
         return [None] * len(devices)
     out.mkdir(parents=True, exist_ok=True)
@@ -367,10 +382,14 @@ def _record_background(out: Path, cfg: SessionConfig, devices: list[dict[str, An
         with AzureMkvWriter(out / f"{dev['calib'].serial}.mkv", dev["calib"], **options) as w:
             for b in range(cfg.background_frames):
                 depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng)
+                stamp = round((b / cfg.fps + offsets[i]) * 1e6)
+                if not cfg.color:
+                    skip_color(dev["calib"], rng)
+                    w.write(stamp, depth_mm=depth.depth_mm)
+                    continue
                 color = render_color(scene, dev["calib"], dev["pose"], light, rng,
                                      cfg.jpeg_quality)
-                w.write(round((b / cfg.fps + offsets[i]) * 1e6), color_jpeg=color.jpeg,
-                        depth_mm=depth.depth_mm)
+                w.write(stamp, color_jpeg=color.jpeg, depth_mm=depth.depth_mm)
         paths.append(f"{out.name}/{dev['calib'].serial}.mkv")
     return paths
 

@@ -3,10 +3,11 @@
 Output folder (one session)::
 
     session.json            what the rig recorded: devices, files, sync modes
-    kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH b16g)
-    calibration/<serial>.mkv  ChArUco board captures, one frame per board pose
+    kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH b16g;
+                            with --no-color DEPTH only, as ``k4arecorder --color-mode OFF``)
+    calibration/<serial>.mkv  ChArUco board captures, one frame per board pose (always colour)
     background/<serial>.mkv   the empty room (chair in place, nobody in view), a few frames
-                            (--background-frames; none with 0)
+                            (--background-frames; none with 0; colourless with --no-color)
     imu/recording.mvnx      Xsens MVN export, 60 Hz on the IMU clock
     imu/xbus.bin            the raw Xbus MTData2 stream of the 17 sensors (+ device_map.json)
     chair_scan.obj          the chair as a 3D scanner delivers it (its own frame)
@@ -18,7 +19,9 @@ Output folder (one session)::
 
 ``--motion-only --sequences N`` writes N ground-truth motions (``motion_NNNNN.h5`` in the same
 schema, each with its own subject, chair and interaction) without rendering: training data.
-Everything is deterministic given ``--seed``.
+Everything is deterministic given ``--seed``; ``--no-color`` skips rendering colour (most of
+the simulation time) and leaves every depth frame, the calibration captures, the IMU and the
+truth as the same seed writes them with colour.
 """
 
 from __future__ import annotations
@@ -77,6 +80,7 @@ class SessionConfig:
     background_frames: int = 3  # empty-room frames per camera (0: no background/ recording)
     jpeg_quality: int = 90
     model: str = "couch-body"
+    color: bool = True  # False: depth-only kinect/ and background/ recordings (mkv, no masks)
 
 
 @dataclasses.dataclass
@@ -171,6 +175,15 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     return summary
 
 
+def _config_record(cfg: SessionConfig) -> dict[str, Any]:
+    """``cfg`` for truth.json. ``color`` appears only when off, so that sessions with colour
+    keep the exact bytes they had before the option existed (the committed fixture)."""
+    record = dataclasses.asdict(cfg)
+    if cfg.color:
+        del record["color"]
+    return record
+
+
 def _session_name(cfg: SessionConfig, kind: str, interaction: str) -> str:
     return f"sim{cfg.seed:04d}_{kind}_{interaction}"
 
@@ -182,6 +195,12 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
         raise ValueError(f"--format must be mkv or frames, got {cfg.fmt!r}")
     if cfg.background_frames < 0:
         raise ValueError(f"--background-frames must be >= 0, got {cfg.background_frames}")
+    if not cfg.color and cfg.fmt != "mkv":
+        raise ValueError("--no-color needs --format mkv (BEHAVE frame folders store colour "
+                         "images, and depth registered to them)")
+    if not cfg.color and cfg.masks:
+        raise ValueError("--masks are person masks in the colour images; they need colour "
+                         "(drop --no-color)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ss = np.random.SeedSequence(cfg.seed).spawn(4)
@@ -211,7 +230,7 @@ def simulate_session(out_dir: str | Path, cfg: SessionConfig,
                           offset - first, progress)
     info.update({
         "couch_version": __version__, "session": name, "seed": cfg.seed,
-        "config": dataclasses.asdict(cfg),
+        "config": _config_record(cfg),
         "chair": {"kind": seq.chair_kind,
                   "world_from_chair": seq.placement.world_from_chair.tolist(),
                   "chair_from_scan": seq.placement.chair_from_scan.tolist(),
@@ -263,6 +282,11 @@ def main(argv: list[str] | None = None) -> int:
                          "background subtraction; 0: none")
     ap.add_argument("--jpeg-quality", type=int, default=d.jpeg_quality)
     ap.add_argument("--masks", action="store_true", help="also write person masks (PNG)")
+    ap.add_argument("--no-color", dest="color", action="store_false",
+                    help="depth-only kinect/ and background/ recordings (no COLOR track, as "
+                         "k4arecorder --color-mode OFF): colour is not rendered, which is most "
+                         "of the time; depth is the same as with colour (mkv only; the "
+                         "calibration/ captures keep colour)")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--motion-only", action="store_true",
                     help="write ground-truth motion only (no rendering), --sequences of them")
