@@ -2,13 +2,15 @@
 
 A session folder (``couch-simulate``'s layout, and what a capture rig writes) holds
 ``kinect/<serial>.mkv``, ``calibration/<serial>.mkv`` (ChArUco captures),
-``background/<serial>.mkv`` (the empty room, optional), ``imu/*.mvnx`` and a ``session.json``
-manifest naming them::
+``background/<serial>.mkv`` (the empty room, optional), ``imu/*.mvnx``, optionally a scan of the
+subject (``subject/scan.ply`` or ``.obj``, a mesh in metres) and a ``session.json`` manifest
+naming them::
 
     {"kinect": [{"serial": "...", "file": "kinect/<serial>.mkv", "sync": "MASTER",
                  "calibration_capture": "calibration/<serial>.mkv",
                  "background": "background/<serial>.mkv" | null}, ...],
-     "imu": {"mvnx": "imu/recording.mvnx", ...}, "board": {...ChArUco BoardSpec fields...}}
+     "imu": {"mvnx": "imu/recording.mvnx", ...}, "board": {...ChArUco BoardSpec fields...},
+     "subject": {"scan": "subject/scan.ply"}}
 
 Without a manifest the folders are listed instead (cameras by file stem, in name order).
 """
@@ -57,6 +59,7 @@ class SessionFiles:
         cameras: the Kinects in the manifest's order (or by serial).
         mvnx: the IMU's MVNX export, or None.
         board: the manifest's ChArUco board fields, or None.
+        subject_scan: a mesh of the subject (for the body shape), or None.
     """
 
     root: Path
@@ -64,6 +67,7 @@ class SessionFiles:
     cameras: list[CameraFiles]
     mvnx: Path | None
     board: dict[str, Any] | None
+    subject_scan: Path | None = None
 
     def camera(self, serial: str) -> CameraFiles | None:
         """The camera ``serial``, or None if the session has no such camera."""
@@ -102,10 +106,13 @@ def session_files(session_dir: str | os.PathLike) -> SessionFiles:
                                        str(k.get("sync", ""))))
         mvnx_entry = (doc.get("imu") or {}).get("mvnx")
         board = doc.get("board")
+        scan_entry = (doc.get("subject") or {}).get("scan")
     except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
         raise SessionLayoutError(f"{manifest}: malformed session manifest ({exc!r})") from None
     mvnx = root / mvnx_entry if mvnx_entry else _first(root / "imu", "*.mvnx")
-    return SessionFiles(root, manifest, cameras, mvnx, board if isinstance(board, dict) else None)
+    scan = root / scan_entry if scan_entry else _subject_scan(root)
+    return SessionFiles(root, manifest, cameras, mvnx, board if isinstance(board, dict) else None,
+                        scan)
 
 
 def _first(folder: Path, pattern: str) -> Path | None:
@@ -121,4 +128,10 @@ def _listed(root: Path) -> SessionFiles:
         bg = root / "background" / f"{serial}.mkv"
         cameras.append(CameraFiles(serial, recordings.get(serial), captures.get(serial),
                                    bg if bg.is_file() else None))
-    return SessionFiles(root, None, cameras, _first(root / "imu", "*.mvnx"), None)
+    return SessionFiles(root, None, cameras, _first(root / "imu", "*.mvnx"), None,
+                        _subject_scan(root))
+
+
+def _subject_scan(root: Path) -> Path | None:
+    return next((p for p in (root / "subject" / "scan.ply", root / "subject" / "scan.obj")
+                 if p.is_file()), None)

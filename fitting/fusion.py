@@ -60,7 +60,11 @@ __all__ = ["FusionConfig", "contact_runs", "fuse_motion"]
 class FusionConfig:
     """Scales (expected size of each residual; smaller = stronger) and optimiser settings.
 
-    Lengths in metres, angles in degrees; "per frame" means between consecutive frames.
+    Lengths in metres, angles in degrees; "per frame" means between consecutive frames of a
+    recording at ``reference_fps``: :func:`fuse_motion` given another ``fps`` converts them to
+    the same rates per second (a rotation step per frame scales with 1/fps, an acceleration per
+    frame² with 1/fps², a knot spacing in frames with fps), so a setting means the same motion
+    at 5, 15 or 30 fps.
     """
 
     model: str = "couch-body-coarse"
@@ -95,6 +99,13 @@ class FusionConfig:
     """L_temp, second term: central-difference joint acceleration per frame²."""
     sigma_slide_m: float = 0.002
     """L_slide: foot point distance to its contact target."""
+    contact_motion_weight: float = 0.1
+    """A contact run's target is the mean of the Kinect fits' foot point, weighted by their
+    reliability, and the current motion's with this weight per frame (so a run the cameras
+    did not see takes the motion's own mean)."""
+    contact_max_speed: float = 0.3
+    """A contact frame is held to its run's target only while the foot point moves slower
+    than this (m/s, between neighbouring frames of the current motion)."""
     sigma_floor_m: float = 0.002
     """Foot point depth below the floor."""
     floor_height: float = 0.0
@@ -107,6 +118,8 @@ class FusionConfig:
     """L-BFGS iterations per round."""
     device: str = "cpu"
     """Device of the default model (the optimisation runs in float64 whatever the model's)."""
+    reference_fps: float = 30.0
+    """Frame rate at which the per-frame scales and ``knot_frames`` are stated."""
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -118,6 +131,8 @@ class FusionConfig:
                 raise ValueError(f"FusionConfig.{f.name} must be > 0, got {v}")
         if self.knot_frames < 1:
             raise ValueError(f"FusionConfig.knot_frames must be >= 1, got {self.knot_frames}")
+        if not self.reference_fps > 0:
+            raise ValueError(f"FusionConfig.reference_fps must be > 0, got {self.reference_fps}")
         if self.rounds < 1 or self.iters < 1:
             raise ValueError(f"FusionConfig.rounds and iters must be >= 1, got "
                              f"{self.rounds}, {self.iters}")
@@ -194,8 +209,8 @@ def _check(kinect_fit: Any, imu_pose: Any, reliability: Any, foot_contact: Any
 
 
 def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_contact: Any,
-                model: BodyModel | None = None, config: FusionConfig | None = None
-                ) -> BodyParams:
+                model: BodyModel | None = None, config: FusionConfig | None = None, *,
+                fps: float | None = None) -> BodyParams:
     """Fuse per-frame Kinect fits with the synced IMU pose over a whole sequence.
 
     Args:
@@ -209,6 +224,8 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         foot_contact: (T,4) bool, the IMU's heel/toe contacts in ``FOOT_KEYPOINTS`` order.
         model: body model (default ``config.model``); must have the foot keypoints.
         config: scales and optimiser settings.
+        fps: the sequence's frame rate (default ``config.reference_fps``); the per-frame
+            scales are converted to it.
 
     Returns:
         The fused parameters (same betas).
@@ -218,6 +235,12 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
             reliabilities, or a model without foot keypoints.
     """
     cfg = config or FusionConfig()
+    rate = cfg.reference_fps if fps is None else float(fps)
+    if not rate > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    # per-frame scales of the config are at reference_fps: the same rates per second at ``rate``
+    slow = cfg.reference_fps / rate  # reference frames per frame of this sequence
+    knot_frames = max(1, round(cfg.knot_frames / slow))
     kin_rot, imu_rot, imu_transl, rel, fc = _check(kinect_fit, imu_pose, reliability,
                                                    foot_contact)
     model = model if model is not None else cached_model(cfg.model, cfg.device, "float64")
@@ -267,11 +290,11 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         dtransl0 = base
     # corrections: smooth (a cubic B-spline, control points every knot_frames frames) plus an
     # optional per-frame residual; few smooth parameters keep L-BFGS well conditioned
-    basis = tensor(_spline_basis(t, cfg.knot_frames))
+    basis = tensor(_spline_basis(t, knot_frames))
     n_knots = basis.shape[1]
     knots = torch.zeros(n_knots, 24, 3, dtype=dt, device=dev, requires_grad=True)
     eps = torch.zeros(t, 24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_deg > 0)
-    knots_t = torch.linalg.lstsq(basis, tensor(dtransl0)).solution.requires_grad_(True)
+    knots_t = torch.linalg.lstsq(basis, tensor(dtransl0)).solution.contiguous().requires_grad_(True)
     eps_t = torch.zeros(t, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_m > 0)
     params = [p for p in (knots, eps, knots_t, eps_t) if p.requires_grad]
 
@@ -283,30 +306,47 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     s_imu = np.deg2rad(cfg.sigma_imu_deg)
     s_bias = np.deg2rad(cfg.sigma_bias_deg)
     s_frame = np.deg2rad(cfg.sigma_frame_deg)
-    s_step = np.deg2rad(cfg.sigma_step_deg)
-    runs = contact_runs(fc)
-    contact = tensor(fc)
+    s_step = np.deg2rad(cfg.sigma_step_deg) * slow
+    s_acc = cfg.sigma_acc_m * slow ** 2
+    max_step = cfg.contact_max_speed / rate  # metres per frame
+    with torch.no_grad():
+        kin_feet = skin.vertices(kin_posed, v_shaped, foot_index)
+    # reliability of the fits' foot points: their ankle and foot joints (heel, toe per side)
+    foot_joints = np.array([[7, 10], [7, 10], [8, 11], [8, 11]])
+    foot_rel = tensor(rel[:, foot_joints].mean(-1))
 
     def forward() -> tuple[torch.Tensor, Any]:
         delta, dtransl = corrections()
         local = r_imu @ axis_angle_to_matrix(delta)
         return local, skin.pose(local, rest_joints, t_base + dtransl)
 
-    def targets() -> torch.Tensor:
+    def targets() -> tuple[torch.Tensor, torch.Tensor]:
+        """Each contact run's foot target and the frames held to it: the IMU's contact flags
+        where the current motion's foot point is slow (a flag's first or last frame often
+        catches the heel rising or landing, more so at low frame rates)."""
         with torch.no_grad():
             _, posed = forward()
             feet = skin.vertices(posed, v_shaped, foot_index)
+        f = feet.cpu().numpy()
+        step = np.zeros(f.shape[:2])
+        if t > 1:
+            v = np.linalg.norm(np.diff(f, axis=0), axis=-1)  # (T-1, 4)
+            step = np.maximum(np.vstack([v, v[-1:]]), np.vstack([v[:1], v]))
+        held = fc & (step <= max_step)
         tgt = feet.clone()
-        for k, s, e in runs:
-            mean = feet[s:e, k].mean(0)
+        for k, s, e in contact_runs(held):
+            # where the fits saw the foot, they place it; the current motion fills in
+            w = foot_rel[s:e, k, None]
+            mean = ((w * kin_feet[s:e, k]).sum(0) + cfg.contact_motion_weight * feet[s:e, k].sum(0)
+                    ) / (w.sum() + cfg.contact_motion_weight * (e - s))
             if cfg.snap_to_floor:
                 mean[1] = cfg.floor_height + clearance[k]
             else:
                 mean[1] = torch.clamp(mean[1], min=cfg.floor_height)
             tgt[s:e, k] = mean
-        return tgt
+        return tgt, tensor(held)
 
-    def loss_fn(tgt: torch.Tensor) -> torch.Tensor:
+    def loss_fn(tgt: torch.Tensor, contact: torch.Tensor) -> torch.Tensor:
         local, posed = forward()
         joints = posed.joints
         # Kinect data terms, reliability-weighted per frame and joint
@@ -326,7 +366,7 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         # L_temp (Eq. 7)
         loss = loss + (local[1:] - local[:-1]).square().sum() / 2.0 / s_step ** 2
         acc = _second_difference(joints)
-        loss = loss + acc.square().sum() / cfg.sigma_acc_m ** 2
+        loss = loss + acc.square().sum() / s_acc ** 2
         # L_slide (Eq. 8) and the floor
         feet = skin.vertices(posed, v_shaped, foot_index)
         slide = (feet - tgt).square().sum(-1) * contact
@@ -339,11 +379,11 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
                             line_search_fn="strong_wolfe", tolerance_grad=1e-9,
                             tolerance_change=1e-12)
     for _ in range(cfg.rounds):
-        tgt = targets()
+        tgt, held = targets()
 
-        def closure(tgt: torch.Tensor = tgt) -> torch.Tensor:
+        def closure(tgt: torch.Tensor = tgt, held: torch.Tensor = held) -> torch.Tensor:
             opt.zero_grad(set_to_none=True)
-            loss = loss_fn(tgt)
+            loss = loss_fn(tgt, held)
             loss.backward()
             return loss
 

@@ -6,7 +6,8 @@ per-frame values plus their summary, so a report can show where a sequence goes 
 * :func:`mpjpe` — mean per-joint position error against ground truth joints.
 * :func:`surface_distances` / :func:`chamfer` — how well a fitted mesh explains a point cloud:
   points → surface (exact point-to-triangle, open3d) and surface → points (samples of the
-  surface seen by the cameras, nearest point).
+  surface seen by the cameras, nearest point; with :class:`CameraView` s and the chair as an
+  occluder, "seen" means inside a camera's image and not hidden by the body or the chair).
 * :func:`foot_skate` — horizontal foot travel while a foot is marked in contact (mm per frame).
 * :func:`jitter` — mean jerk magnitude of joint trajectories (m/s³).
 * :func:`sync_error` — an estimated clock model against the true one (ms, ppm).
@@ -15,14 +16,20 @@ per-frame values plus their summary, so a report can show where a sequence goes 
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from couch.capture.azure_calibration import CameraIntrinsics
+from couch.capture.registration import project_points
+
 __all__ = [
     "FOOT_KEYPOINTS",
+    "CameraView",
     "SurfaceDistances",
     "chamfer",
     "foot_points",
@@ -89,17 +96,49 @@ class SurfaceDistances:
         return float(np.nanmean([a, b]))
 
 
+@dataclasses.dataclass(frozen=True)
+class CameraView:
+    """What one depth camera sees: its world pose and intrinsics (for the visibility of
+    surface samples: inside the image, in front of the camera).
+
+    Attributes:
+        world_from_camera: (4,4) world pose of the depth camera (metres).
+        intrinsics: its :class:`~couch.capture.azure_calibration.CameraIntrinsics`.
+    """
+
+    world_from_camera: np.ndarray
+    intrinsics: CameraIntrinsics
+
+    @property
+    def centre(self) -> np.ndarray:
+        return np.asarray(self.world_from_camera, np.float64)[:3, 3]
+
+    def in_view(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: world points (N,3) that project inside the image."""
+        pose = np.asarray(self.world_from_camera, np.float64)
+        cam = (np.asarray(points, np.float64) - pose[:3, 3]) @ pose[:3, :3]
+        uv, ok = project_points(cam, self.intrinsics)
+        w, h = self.intrinsics.width, self.intrinsics.height
+        with np.errstate(invalid="ignore"):
+            return ok & (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) \
+                & (uv[:, 1] <= h - 0.5)
+
+
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
-                      visible_from: np.ndarray | None = None,
+                      visible_from: np.ndarray | Sequence[CameraView] | None = None,
+                      occluders: tuple[np.ndarray, np.ndarray] | None = None,
                       samples: int = 4000, seed: int = 0) -> SurfaceDistances:
     """Point cloud ↔ mesh distances of one frame.
 
     Args:
         vertices: (V, 3) posed mesh, metres, world; faces: (F, 3) int.
         points: (N, 3) the frame's (segmented) point cloud, world.
-        visible_from: (C, 3) camera centres, world: only surface samples that some camera sees
-            (unoccluded by the mesh itself) count in the surface → points direction, since the
-            cameras never saw the rest. None: every sample counts.
+        visible_from: (C, 3) camera centres, world, or C :class:`CameraView`: only surface
+            samples that some camera sees (unoccluded by the mesh itself or the ``occluders``,
+            and with views inside that camera's image) count in the surface → points
+            direction, since the cameras never saw the rest. None: every sample counts.
+        occluders: (vertices (W,3), faces (G,3)) of other surfaces in the scene (the chair) that
+            hide parts of the body from the cameras; used only for the visibility.
         samples: surface samples (area-uniform) for the surface → points direction.
         seed: sampling seed.
 
@@ -115,7 +154,10 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
                   if len(pts) else np.zeros(0))
     sample = _sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
     if visible_from is not None:
-        sample = sample[_visible(scene, sample, np.asarray(visible_from, np.float64))]
+        if occluders is not None:
+            scene.add_triangles(o3d.core.Tensor(np.asarray(occluders[0], np.float32)),
+                                o3d.core.Tensor(np.asarray(occluders[1], np.uint32)))
+        sample = sample[_visible(scene, sample, visible_from)]
     to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
                  else np.full(len(sample), np.nan))
     return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
@@ -133,11 +175,16 @@ def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarr
     return (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2]
 
 
-def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, cameras: np.ndarray
-             ) -> np.ndarray:
-    """(n,) bool: nothing of the mesh lies between the point and at least one camera."""
+def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray,
+             cameras: np.ndarray | Sequence[CameraView]) -> np.ndarray:
+    """(n,) bool: nothing of the scene lies between the point and at least one camera (and,
+    for a :class:`CameraView`, the point is inside its image)."""
     seen = np.zeros(len(pts), bool)
-    for cam in cameras:
+    views = (list(cameras) if len(cameras) and isinstance(cameras[0], CameraView)
+             else [None] * len(cameras))
+    centres = (np.array([v.centre for v in views]) if views and views[0] is not None
+               else np.asarray(cameras, np.float64).reshape(-1, 3))
+    for cam, view in zip(centres, views, strict=True):
         d = cam - pts
         dist = np.linalg.norm(d, axis=1)
         d /= dist[:, None]
@@ -145,18 +192,21 @@ def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, cameras: np
         origin = pts + 1e-4 * d
         rays = np.concatenate([origin, d], axis=1).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        seen |= ~(hit < dist - 1e-3)
+        unhidden = ~(hit < dist - 1e-3)
+        seen |= unhidden if view is None else unhidden & view.in_view(pts)
     return seen
 
 
 def chamfer(vertices: np.ndarray, faces: np.ndarray, clouds: list[np.ndarray], *,
-            visible_from: np.ndarray | None = None, samples: int = 4000) -> np.ndarray:
+            visible_from: np.ndarray | Sequence[CameraView] | None = None,
+            occluders: tuple[np.ndarray, np.ndarray] | None = None,
+            samples: int = 4000) -> np.ndarray:
     """Per-frame symmetric chamfer distance (metres) of fitted meshes to their point clouds.
 
     Args:
         vertices: (T, V, 3) posed meshes; faces: (F, 3).
         clouds: T point clouds, (N_t, 3) each (their sizes differ, hence a list).
-        visible_from: (C, 3) camera centres (see :func:`surface_distances`).
+        visible_from, occluders: what the cameras could see (see :func:`surface_distances`).
         samples: surface samples per frame.
 
     Returns:
@@ -167,7 +217,7 @@ def chamfer(vertices: np.ndarray, faces: np.ndarray, clouds: list[np.ndarray], *
         raise ValueError(f"{len(verts)} meshes but {len(clouds)} clouds")
     # Clouds differ in size per frame, so frames go one at a time through open3d's BVH.
     return np.array([surface_distances(v, faces, c, visible_from=visible_from,
-                                       samples=samples, seed=t).chamfer
+                                       occluders=occluders, samples=samples, seed=t).chamfer
                      if len(c) else np.nan for t, (v, c) in enumerate(zip(verts, clouds,
                                                                           strict=True))])
 

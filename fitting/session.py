@@ -1,0 +1,696 @@
+"""The body of a whole session: sync, person clouds, IMU-initialised fits, sequence fusion.
+
+:func:`fit_session` chains the stages of issue 7 on a session folder:
+
+1. **cameras and clock** — :func:`couch.sync.sync_session`: every camera's frames on the Kinect
+   master clock (rows of the frame table), the IMU clock from the head top, the suit's poses
+   resampled (slerp) at the rows' times;
+2. **person clouds** — every camera's recording segmented (:func:`couch.capture.segmentation.
+   segment_recording`, with the registered chair when given) and fused per row
+   (:func:`couch.capture.pointcloud.fuse_clouds`); a camera that dropped a row just adds
+   nothing to it;
+3. **IMU world → camera world** — MVN has its own heading and horizontal origin
+   (:mod:`couch.capture.imu`). :func:`align_imu` finds the rotation about +Y and the
+   translation that put the suit's body onto the clouds: a search over headings (every
+   ``yaw_step_deg``, then finer) scoring how well the posed IMU body explains the clouds of a
+   few frames, each with its best translation;
+4. **subject shape** — from the subject scan when the session has one
+   (:func:`couch.fitting.shape.fit_betas_to_scan`), else fitted over frames of the session
+   (:func:`couch.fitting.shape.fit_shape`);
+5. **per-frame fits** — :func:`couch.fitting.body.fit_bodies`, initialised from the aligned IMU
+   pose; then the alignment is refined on the fitted joints (every joint of every reliable frame,
+   so the heading is settled by the body's own orientation) and, optionally, the IMU clock on
+   the fitted joints (:func:`couch.sync.refine_imu`);
+6. **reliability** — per frame and joint (:func:`fit_reliability`): a fit counts where its
+   chamfer is small and, per joint, where the body surface that faces a camera there is
+   actually backed by cloud points (a limb hidden behind the chair or cut away with it is not);
+7. **fusion** — :func:`couch.fitting.fusion.fuse_motion` (COUCH Eq. 7–8) with the IMU's foot
+   contacts.
+
+Rows fitted: from the first to the last row at which the suit's pose could be resampled (no
+extrapolation); rows inside that span that the IMU lost (gaps) keep the nearest valid IMU pose
+as the initial guess and are counted. Units: metres, seconds (Kinect master clock), world frame
+of the extrinsics (Y up, floor at y = 0 after :func:`couch.capture.calibration.
+level_with_floor`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
+
+from couch.body import BodyModel
+from couch.capture.calibration import Extrinsics, calibrate_session
+from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
+from couch.capture.segmentation import (
+    ChairModel,
+    SegmentationConfig,
+    empty_room_recording,
+    segment_recording,
+)
+from couch.capture.session import session_files
+from couch.fitting.body import BodyFit, BodyFitConfig, cached_model, fit_bodies
+from couch.fitting.clouds import cloud_arrays
+from couch.fitting.fusion import FusionConfig, fuse_motion
+from couch.fitting.metrics import CameraView, surface_distances
+from couch.fitting.params import BodyParams
+from couch.fitting.shape import ShapeFitConfig, fit_betas_to_scan, fit_shape
+from couch.fitting.terms import vertex_normals
+from couch.geometry import apply_transform
+from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from couch.sync import (
+    CameraTrack,
+    ClockEstimate,
+    KinectSync,
+    ResampledImu,
+    SessionSync,
+    SyncError,
+    refine_imu,
+    resample_imu,
+    sync_session,
+)
+
+__all__ = [
+    "SessionFit",
+    "SessionFitConfig",
+    "SessionFitError",
+    "WorldAlignment",
+    "align_imu",
+    "fit_reliability",
+    "fit_session",
+    "imu_body_params",
+    "refine_alignment",
+    "session_clouds",
+]
+
+log = logging.getLogger(__name__)
+
+
+class SessionFitError(ValueError):
+    """The session cannot be fitted (the message names the session and why)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SessionFitConfig:
+    """Knobs of :func:`fit_session` (lengths in metres, angles in degrees).
+
+    Attributes:
+        body, shape, fusion: the stages' own configs.
+        cloud, segmentation: the capture stage's (None: their defaults).
+        align_frames: frames (those with the most points) the heading search scores.
+        align_points: cloud points per frame in that search.
+        yaw_step_deg: coarse heading step of the search (then refined to 1/10 of it).
+        refine_clock: re-estimate the IMU clock on the fitted joints and resample again (off:
+            on a 10 s simulated session it moved the head-top estimate's -0.2 ms error to
+            -1.1 ms; the drift is not observable over so short a lever either way).
+        good_chamfer, bad_chamfer: a frame's fit is fully reliable at or below the first
+            chamfer, unreliable (weight 0) at or above the second, linear between.
+        support_distance: a camera-facing body vertex is "backed" by the cloud when a point
+            lies within this distance.
+        min_support, full_support: a joint's reliability goes from 0 to 1 as the backed
+            fraction of its camera-facing vertices goes from the first to the second.
+        fuse: run the sequence fusion (else the result's ``fused`` is the per-frame fit).
+    """
+
+    body: BodyFitConfig = dataclasses.field(default_factory=BodyFitConfig)
+    shape: ShapeFitConfig = dataclasses.field(default_factory=ShapeFitConfig)
+    fusion: FusionConfig = dataclasses.field(default_factory=FusionConfig)
+    cloud: CloudConfig | None = None
+    segmentation: SegmentationConfig | None = None
+    align_frames: int = 6
+    align_points: int = 800
+    yaw_step_deg: float = 10.0
+    refine_clock: bool = False
+    good_chamfer: float = 0.02
+    bad_chamfer: float = 0.05
+    support_distance: float = 0.03
+    min_support: float = 0.15
+    full_support: float = 0.5
+    fuse: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldAlignment:
+    """The IMU's world in the cameras' world: ``p_world = R_y(yaw) · p_imu + translation``.
+
+    Attributes:
+        yaw_deg: rotation about +Y (degrees).
+        translation: (3,) metres.
+        residual: median distance (m) of the evidence used (cloud points to the posed body, or
+            fitted to IMU joints) after alignment.
+        method: ``clouds`` (heading search) or ``joints`` (refined on fitted joints).
+    """
+
+    yaw_deg: float
+    translation: np.ndarray
+    residual: float
+    method: str
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3,3) world-from-IMU rotation."""
+        return _yaw_matrix(np.deg2rad(self.yaw_deg))
+
+    @property
+    def world_from_imu(self) -> np.ndarray:
+        """(4,4) homogeneous transform."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.rotation, self.translation
+        return m
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """(...,3) IMU-world points → world."""
+        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+
+@dataclasses.dataclass
+class SessionFit:
+    """A session's body motion. T = fitted rows of the frame table.
+
+    Attributes:
+        session: the session folder.
+        sync: the sync stage's result (clock as first estimated from the head top).
+        imu_clock: the IMU clock used in the end (refined on the fitted joints when
+            ``refine_clock``).
+        rows: (T,) rows of ``sync.kinect.frame_table`` fitted.
+        time: (T,) Kinect master-clock seconds of those rows.
+        clouds: T fused person clouds (world).
+        views: the C depth cameras (:class:`~couch.fitting.metrics.CameraView`, world).
+        imu: the suit's poses at ``time`` (:class:`~couch.sync.ResampledImu`, IMU world).
+        imu_filled: (T,) bool, rows where the IMU had no sample (a gap) and the nearest
+            valid pose stands in.
+        alignment: IMU world → world, refined on the fitted joints.
+        imu_params: the IMU pose in the world with the subject's shape (the fits' start).
+        betas: (10,) the subject's shape; shape_source: ``scan`` or ``clouds``.
+        fit: the per-frame fits (:class:`~couch.fitting.body.BodyFit`).
+        fit_chamfer: (T,) metres, symmetric chamfer of each per-frame fit to its cloud, the
+            body surface counted where a camera could see it (in its image, not hidden by the
+            body or the chair); NaN for fallback frames.
+        reliability: (T,24) the fits' weights in the fusion.
+        foot_contact: (T,4) the IMU's heel/toe contacts (``FOOT_KEYPOINTS`` order).
+        fused: the fused motion (or the per-frame fit when fusion was off).
+        joints: (T,24,3) world joints of ``fused`` (full model).
+        chamfer: (T,) metres, the same chamfer for ``fused`` (NaN: no points).
+        seconds: wall time per stage.
+        warnings: what may be wrong (named by stage).
+    """
+
+    session: Path
+    sync: SessionSync
+    imu_clock: ClockEstimate
+    rows: np.ndarray
+    time: np.ndarray
+    clouds: list[FusedCloud]
+    views: list[CameraView]
+    imu: ResampledImu
+    imu_filled: np.ndarray
+    alignment: WorldAlignment
+    imu_params: BodyParams
+    betas: np.ndarray
+    shape_source: str
+    fit: BodyFit
+    fit_chamfer: np.ndarray
+    reliability: np.ndarray
+    foot_contact: np.ndarray
+    fused: BodyParams
+    joints: np.ndarray
+    chamfer: np.ndarray
+    seconds: dict[str, float]
+    warnings: list[str]
+
+    def summary(self) -> str:
+        """A few lines: what was fitted and how well."""
+        c = self.imu_clock.clock
+        lines = [
+            f"{self.session}: {len(self.rows)} frames fitted "
+            f"({self.time[0]:.3f}-{self.time[-1]:.3f} s), {len(self.views)} cameras, "
+            f"{np.mean([len(x) for x in self.clouds]):.0f} person points per frame",
+            f"IMU clock: offset {c.offset_s * 1e3:+.2f} ms, drift {c.drift_ppm:+.1f} ppm; "
+            f"heading {self.alignment.yaw_deg:+.1f} deg ({self.alignment.method}, residual "
+            f"{self.alignment.residual * 100:.1f} cm); {int(self.imu_filled.sum())} rows in "
+            f"IMU gaps",
+            f"shape from {self.shape_source}; chamfer per-frame fit "
+            f"{np.nanmean(self.fit_chamfer) * 100:.2f} cm, fused "
+            f"{np.nanmean(self.chamfer) * 100:.2f} cm; {int(self.fit.fallback.sum())} "
+            f"fallback frames; mean reliability {self.reliability.mean():.2f}",
+            "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
+        ]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _yaw_matrix(yaw: np.ndarray | float) -> np.ndarray:
+    """(...,3,3) rotations about +Y by ``yaw`` radians."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1),
+                     np.stack([-s, z, c], -1)], -2)
+
+
+def _posed(model: BodyModel, params: BodyParams, batch: int = 64
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """(T,V,3) vertices and (T,24,3) joints of ``params`` (no grad, float64 out)."""
+    verts, joints = [], []
+    for a in range(0, params.num_frames, batch):
+        sl = slice(a, a + batch)
+        with torch.no_grad():
+            out = model(betas=params.betas[None], global_orient=params.global_orient[sl],
+                        body_pose=params.body_pose[sl], transl=params.transl[sl])
+        verts.append(out.vertices.cpu().numpy().astype(np.float64))
+        joints.append(out.joints.cpu().numpy().astype(np.float64))
+    return np.concatenate(verts), np.concatenate(joints)
+
+
+def _rest_pelvis(model: BodyModel, betas: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return model.rest_joints(torch.as_tensor(betas[None], dtype=model.dtype)
+                                 )[0, 0].cpu().numpy().astype(np.float64)
+
+
+def imu_body_params(imu: ResampledImu, alignment: WorldAlignment | None, betas: np.ndarray,
+                    model: BodyModel, rows: np.ndarray | None = None) -> BodyParams:
+    """The suit's pose as SMPL parameters in the world.
+
+    Args:
+        imu: resampled suit poses (IMU world); every selected row must be valid.
+        alignment: IMU world → world (None: identity).
+        betas: (10,) the subject's shape (sets where the pelvis joint sits in the rest pose).
+        model: the body model (its rest pelvis for ``transl``).
+        rows: rows of ``imu`` to take (default all).
+
+    Returns:
+        :class:`BodyParams`: the pelvis orientation turned by the alignment, the local joint
+        rotations as measured, ``transl`` putting the model's pelvis joint on the suit's.
+    """
+    sel = np.arange(len(imu.time)) if rows is None else np.asarray(rows)
+    rot = np.eye(3) if alignment is None else alignment.rotation
+    root = rot @ axis_angle_to_matrix(imu.global_orient[sel].astype(np.float64))
+    pelvis = imu.joint_positions[sel, 0].astype(np.float64)
+    if alignment is not None:
+        pelvis = alignment.apply(pelvis)
+    transl = pelvis - _rest_pelvis(model, np.asarray(betas, np.float64))
+    return BodyParams(matrix_to_axis_angle(root), imu.body_pose[sel], transl,
+                      np.asarray(betas, np.float32))
+
+
+def _fill_gaps(valid: np.ndarray) -> np.ndarray:
+    """(T,) index of the nearest valid row for every row (valid rows map to themselves)."""
+    ok = np.flatnonzero(valid)
+    pos = np.clip(np.searchsorted(ok, np.arange(len(valid))), 1, len(ok) - 1) if len(ok) > 1 \
+        else np.zeros(len(valid), int)
+    if len(ok) == 1:
+        return np.full(len(valid), ok[0])
+    left, right = ok[pos - 1], ok[pos]
+    rows = np.arange(len(valid))
+    return np.where(rows - left <= right - rows, left, right)
+
+
+def _take(imu: ResampledImu, index: np.ndarray) -> ResampledImu:
+    """A :class:`ResampledImu` of the rows ``index`` (copies)."""
+    fc = None if imu.foot_contacts is None else imu.foot_contacts[index]
+    return ResampledImu(time=imu.time[index], imu_time=imu.imu_time[index],
+                        status=imu.status[index], joint_rotations=imu.joint_rotations[index],
+                        global_orient=imu.global_orient[index], body_pose=imu.body_pose[index],
+                        joint_positions=imu.joint_positions[index], foot_contacts=fc,
+                        source=imu.source)
+
+
+def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud],
+              views: Sequence[CameraView], present: np.ndarray,
+              occluders: tuple[np.ndarray, np.ndarray] | None, samples: int) -> np.ndarray:
+    """(T,) chamfer of posed meshes (T,V,3) to their clouds, the surface counted where one of
+    the cameras that recorded the frame (``present`` (T,C)) could see it; NaN: no points."""
+    out = np.full(len(verts), np.nan)
+    for k, cloud in enumerate(clouds):
+        pts = cloud_arrays(cloud)[0]
+        seen = [v for v, p in zip(views, present[k], strict=True) if p]
+        if len(pts) and seen:
+            out[k] = surface_distances(verts[k], faces, pts, visible_from=seen,
+                                       occluders=occluders, samples=samples, seed=k).chamfer
+    return out
+
+
+# --------------------------------------------------------------------------- clouds
+
+
+def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[str, np.ndarray],
+                   kinect: KinectSync, tracks: Sequence[CameraTrack], rows: np.ndarray, *,
+                   chair: ChairModel | None = None,
+                   segmentation: SegmentationConfig | None = None,
+                   cloud: CloudConfig | None = None, progress: bool = False
+                   ) -> tuple[list[FusedCloud], list[CameraView], list[str]]:
+    """Person clouds at rows of the frame table.
+
+    Every camera's recording is segmented once (background from its empty-room recording when
+    the session has one, else its calibration capture and its own frames), then each row's
+    frames are fused. A camera's frame is found by its timestamp (the frame table indexes each
+    camera's frame list, ``tracks[c].timestamp_us``).
+
+    Args:
+        session_dir: the session.
+        extrinsics: camera poses (:class:`Extrinsics` or serial → (4,4) world_from_depth).
+        kinect: the cameras on the master clock (``SessionSync.kinect``).
+        tracks: the per-camera tracks it was synced from (``SessionSync.tracks``).
+        rows: (T,) rows of ``kinect.frame_table``.
+        chair: the registered chair (its points are kept out of the person), or None.
+        segmentation, cloud: capture-stage configs.
+        progress: progress bars.
+
+    Returns:
+        (T clouds, the C cameras' :class:`~couch.fitting.metrics.CameraView` s (world),
+        warnings: skipped captures per camera).
+    """
+    files = session_files(session_dir)
+    segs, poses, warnings = [], [], []
+    for serial in tqdm(kinect.serials, desc="segmentation", unit="camera", disable=not progress):
+        cam = files.camera(serial)
+        if cam is None or cam.recording is None:
+            raise SessionFitError(f"{files.root}: the sync stage read camera {serial} but the "
+                                  f"session has no recording for it")
+        pose = (extrinsics.world_from_depth(serial) if isinstance(extrinsics, Extrinsics)
+                else np.asarray(extrinsics[serial], np.float64))
+        empty = empty_room_recording(files.root, serial)
+        seg = segment_recording(cam.recording, pose, empty_room=empty,
+                                background_paths=[p for p in (cam.calibration_capture,)
+                                                  if p is not None],
+                                chair=chair, config=segmentation)
+        if seg.skipped:
+            warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
+                            f"depth skipped")
+        segs.append(seg)
+        poses.append(pose)
+    stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
+    by_serial = {t.serial: t.timestamp_us for t in tracks}
+    track_stamps = [by_serial[s] for s in kinect.serials]
+    clouds = []
+    for r in tqdm(np.asarray(rows), desc="clouds", unit="frame", disable=not progress):
+        depths, masks = [], []
+        for c in range(len(segs)):
+            k = int(kinect.frame_table[r, c])
+            f = stamps[c].get(int(track_stamps[c][k])) if k >= 0 else None
+            depths.append(None if f is None else f.depth_mm)
+            masks.append(None if f is None else f.person_reliable)
+        clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
+                                  time=float(kinect.time[r]), config=cloud))
+    views = [CameraView(p, s.calibration.depth) for p, s in zip(poses, segs, strict=True)]
+    return clouds, views, warnings
+
+
+# --------------------------------------------------------------------------- alignment
+
+
+def align_imu(clouds: Sequence[FusedCloud], imu_params: BodyParams, model: BodyModel, *,
+              frames: int = 6, points: int = 800, step_deg: float = 10.0, seed: int = 0
+              ) -> WorldAlignment:
+    """The rotation about +Y and translation taking the IMU's world onto the clouds'.
+
+    The suit's body (``imu_params``: IMU world, any shape) is posed in the ``frames`` frames
+    with the most points. For every heading on a ``step_deg`` grid (then a finer grid around
+    the best), the translation is found by a few robust nearest-neighbour steps (median of the
+    residuals of cloud points to the body's vertices) and the heading is scored by the mean
+    truncated distance (10 cm) of the points to the body. The motion of the body does not need
+    to be large: the body's own shape and orientation decide.
+
+    Raises:
+        SessionFitError: no frame has points.
+    """
+    counts = np.array([len(cloud_arrays(c)[0]) for c in clouds])
+    if not counts.any():
+        raise SessionFitError("no frame has person points: the IMU cannot be aligned")
+    use = np.argsort(-counts, kind="stable")[:frames]
+    use = use[counts[use] > 0]
+    verts, _ = _posed(model, imu_params.frames(use))
+    rng = np.random.default_rng(seed)
+    trees, pts = [], []
+    for k, i in enumerate(use):
+        p = cloud_arrays(clouds[i])[0].astype(np.float64)
+        if len(p) > points:
+            p = p[rng.choice(len(p), points, replace=False)]
+        pts.append(p)
+        trees.append(cKDTree(verts[k]))
+    all_pts = np.concatenate(pts)
+    centre_body = verts.reshape(-1, 3).mean(0)
+
+    def score(yaw: float) -> tuple[float, np.ndarray]:
+        rot = _yaw_matrix(yaw)
+        # start with the body's centre on the points' centre, then robust ICP steps on t only
+        t = all_pts.mean(0) - rot @ centre_body
+        for _ in range(4):
+            res = []
+            for tree, p in zip(trees, pts, strict=True):
+                local = (p - t) @ rot  # points in the IMU world: R^T (p - t)
+                _, j = tree.query(local)
+                res.append(p - (tree.data[j] @ rot.T + t))
+            t = t + np.median(np.concatenate(res), axis=0)
+        d = np.concatenate([tree.query((p - t) @ rot)[0] for tree, p in
+                            zip(trees, pts, strict=True)])
+        return float(np.minimum(d, 0.10).mean()), t
+
+    step = np.deg2rad(step_deg)
+    grid = np.arange(0.0, 2 * np.pi, step)
+    scores = [score(y)[0] for y in grid]
+    best = grid[int(np.argmin(scores))]
+    fine = best + np.linspace(-step, step, 21)
+    results = [(score(y), y) for y in fine]
+    (s, t), yaw = min(results, key=lambda r: r[0][0])
+    deg = float((np.rad2deg(yaw) + 180.0) % 360.0 - 180.0)
+    return WorldAlignment(deg, t, s, "clouds")
+
+
+def refine_alignment(fitted_joints: np.ndarray, imu_joints: np.ndarray, weights: np.ndarray
+                     ) -> WorldAlignment:
+    """Heading and translation from fitted joints and the suit's joints (weighted Procrustes
+    restricted to rotations about +Y).
+
+    Args:
+        fitted_joints: (T,24,3) world.
+        imu_joints: (T,24,3) IMU world.
+        weights: (T,24) >= 0 (e.g. the fits' reliability).
+    """
+    w = np.asarray(weights, np.float64).reshape(-1)
+    a = np.asarray(imu_joints, np.float64).reshape(-1, 3)
+    b = np.asarray(fitted_joints, np.float64).reshape(-1, 3)
+    ok = (w > 0) & np.isfinite(a).all(1) & np.isfinite(b).all(1)
+    if ok.sum() < 3:
+        raise SessionFitError("too few reliable fitted joints to align the IMU")
+    w, a, b = w[ok], a[ok], b[ok]
+    for _ in range(3):  # reweighted: drop joints far off (a bad fit the weights missed)
+        ca, cb = (w[:, None] * a).sum(0) / w.sum(), (w[:, None] * b).sum(0) / w.sum()
+        a0, b0 = a - ca, b - cb
+        # yaw maximising sum w b0·R a0 in the x-z plane
+        sxx = (w * (a0[:, 0] * b0[:, 0] + a0[:, 2] * b0[:, 2])).sum()
+        sxz = (w * (a0[:, 2] * b0[:, 0] - a0[:, 0] * b0[:, 2])).sum()
+        yaw = np.arctan2(sxz, sxx)
+        rot = _yaw_matrix(yaw)
+        t = cb - rot @ ca
+        r = np.linalg.norm(a @ rot.T + t - b, axis=1)
+        cut = max(3.0 * np.median(r), 0.03)
+        w = np.where(r > cut, 0.0, w)
+    return WorldAlignment(float(np.rad2deg(yaw)), t, float(np.median(r)), "joints")
+
+
+# --------------------------------------------------------------------------- reliability
+
+
+def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: np.ndarray,
+                    fallback: np.ndarray, views: Sequence[CameraView], model: BodyModel,
+                    config: SessionFitConfig | None = None) -> np.ndarray:
+    """(T,24) weights of per-frame fits for the fusion, in [0, 1].
+
+    Per frame: 0 for a fallback frame (too few points), else from its chamfer (1 at or below
+    ``good_chamfer``, 0 at or above ``bad_chamfer``). Per joint: the fraction of the
+    vertices the joint moves most that face a camera from inside its image and have a cloud
+    point within ``support_distance``, mapped from [``min_support``, ``full_support``] to
+    [0, 1] (a limb hidden behind the chair faces a camera but is not backed by points; a limb
+    out of every image has no support at all).
+    """
+    cfg = config or SessionFitConfig()
+    t = params.num_frames
+    verts, _ = _posed(model, params)
+    seg = model.weights.cpu().numpy().argmax(1)  # (V,) the joint moving each vertex most
+    with torch.no_grad():
+        vt = torch.as_tensor(verts)
+        faces = torch.as_tensor(model.faces)
+        normals = vertex_normals(vt, faces)
+        normals = normals.numpy()
+    # facing a camera that has the vertex in its image
+    facing = np.zeros(verts.shape[:2], bool)
+    for view in views:
+        to_cam = view.centre - verts
+        facing |= ((to_cam * normals).sum(-1) > 0) & view.in_view(
+            verts.reshape(-1, 3)).reshape(verts.shape[:2])
+    ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
+    frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
+    frame_w[np.asarray(fallback, bool)] = 0.0
+    out = np.zeros((t, 24))
+    onehot = np.eye(24)[seg]  # (V,24)
+    for k in np.flatnonzero(frame_w > 0):
+        pts = cloud_arrays(clouds[k])[0]
+        d, _ = cKDTree(pts).query(verts[k], distance_upper_bound=cfg.support_distance)
+        backed = (d <= cfg.support_distance) & facing[k]
+        n_facing = facing[k] @ onehot
+        frac = np.divide(backed @ onehot, n_facing, out=np.zeros(24), where=n_facing > 0)
+        out[k] = frame_w[k] * np.clip((frac - cfg.min_support)
+                                      / (cfg.full_support - cfg.min_support), 0.0, 1.0)
+    return out
+
+
+# --------------------------------------------------------------------------- the pipeline
+
+
+def fit_session(session_dir: str | os.PathLike, *,
+                extrinsics: Extrinsics | dict[str, np.ndarray] | None = None,
+                chair: ChairModel | None = None, scan: str | os.PathLike | None = None,
+                config: SessionFitConfig | None = None, progress: bool = False) -> SessionFit:
+    """Sync, clouds, IMU-initialised per-frame fits and sequence fusion of one session.
+
+    Args:
+        session_dir: the session folder (:func:`couch.capture.session.session_files`).
+        extrinsics: camera poses; None calibrates them (ChArUco + floor).
+        chair: the registered chair (kept out of the person clouds), or None.
+        scan: a mesh of the subject (betas from it); None: the session's ``subject_scan``
+            if it has one, else the shape is fitted to the clouds.
+        config: :class:`SessionFitConfig`.
+        progress: progress bars.
+
+    Raises:
+        SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person
+            points (the message names the session).
+        SyncError, SegmentationError, KinectFormatError, MvnxError: from the stages (they name
+            the files).
+    """
+    cfg = config or SessionFitConfig()
+    root = Path(session_dir)
+    seconds: dict[str, float] = {}
+    warnings: list[str] = []
+
+    t0 = time.perf_counter()
+    ext = extrinsics if extrinsics is not None else calibrate_session(root)
+    ss = sync_session(root, extrinsics=ext, progress=progress)
+    warnings += [f"sync: {w}" for w in ss.kinect.warnings]
+    if ss.resampled is None or ss.imu_clock is None or ss.imu is None:
+        raise SessionFitError(f"{root}: the session has no IMU recording (imu/*.mvnx); the body "
+                              f"fit is initialised from the suit's pose")
+    if not ss.imu_clock.confident:
+        warnings.append(f"sync: IMU clock not confident: {ss.imu_clock.summary()}")
+    seconds["sync"] = time.perf_counter() - t0
+
+    valid = ss.resampled.valid
+    if not valid.any():
+        raise SessionFitError(f"{root}: no camera frame falls inside the IMU recording "
+                              f"({ss.resampled.summary()})")
+    rows = np.arange(np.flatnonzero(valid)[0], np.flatnonzero(valid)[-1] + 1)
+    filled = ~valid[rows]
+    if filled.any():
+        warnings.append(f"IMU: {int(filled.sum())} frame(s) in gaps of the IMU recording take "
+                        f"the nearest valid pose")
+    imu = _take(ss.resampled, rows[_fill_gaps(valid[rows])])
+
+    t0 = time.perf_counter()
+    clouds, views, w = session_clouds(root, ext, ss.kinect, ss.tracks, rows, chair=chair,
+                                        segmentation=cfg.segmentation, cloud=cfg.cloud,
+                                        progress=progress)
+    warnings += [f"capture: {x}" for x in w]
+    cameras = np.array([v.centre for v in views])
+    seconds["clouds"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    bcfg = cfg.body
+    coarse = cached_model(bcfg.coarse_model, bcfg.device, bcfg.dtype)
+    full = cached_model(bcfg.model, bcfg.device, bcfg.dtype)
+    zero = np.zeros(10, np.float32)
+    align = align_imu(clouds, imu_body_params(imu, None, zero, coarse), coarse,
+                      frames=cfg.align_frames, points=cfg.align_points,
+                      step_deg=cfg.yaw_step_deg, seed=bcfg.seed)
+    seconds["align"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    scan_path = Path(scan) if scan is not None else session_files(root).subject_scan
+    if scan_path is not None:
+        import trimesh
+
+        mesh = trimesh.load(scan_path, force="mesh", process=False)
+        if len(mesh.vertices) == 0:
+            raise SessionFitError(f"{scan_path}: the subject scan has no vertices")
+        betas = fit_betas_to_scan(np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                  config=dataclasses.replace(cfg.shape, body=bcfg),
+                                  progress=progress).betas
+        shape_source = "scan"
+    else:
+        shape = fit_shape(clouds, imu_body_params(imu, align, zero, coarse), cameras=cameras,
+                          config=dataclasses.replace(cfg.shape, body=bcfg), progress=progress)
+        betas, shape_source = shape.betas, "clouds"
+    seconds["shape"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    init = imu_body_params(imu, align, betas, full)
+    # the fit's own errors see cameras as centres only; ours below know the images and chair
+    fit = fit_bodies(clouds, init, cameras=cameras, config=dataclasses.replace(bcfg, errors=False),
+                     progress=progress)
+    seconds["fit"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    occluders = None
+    if chair is not None:
+        occluders = (apply_transform(np.asarray(chair.world_from_object, np.float64),
+                                     np.asarray(chair.vertices, np.float64)),
+                     np.asarray(chair.faces))
+    fit_verts, _ = _posed(full, fit.params)
+    present = ss.kinect.frame_table[rows] >= 0
+    fit_chamfer = _chamfers(fit_verts, full.faces, clouds, views, present, occluders,
+                            bcfg.error_samples)
+    fit_chamfer[fit.fallback] = np.nan
+    rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, full, cfg)
+    if (rel > 0).any():
+        align = refine_alignment(fit.joints, imu.joint_positions, rel)
+    else:
+        warnings.append("fit: no reliable frame; the IMU alignment rests on the heading search")
+    clock = ss.imu_clock
+    if cfg.refine_clock and (rel.sum(1) > 0).sum() >= 10:
+        joints = np.where((rel.sum(1) > 0)[:, None, None], fit.joints, np.nan)
+        try:
+            clock = refine_imu(ss.kinect.time[rows], joints, ss.imu, ss.imu_clock.clock,
+                               imu_name=ss.imu_source or "IMU")
+            res = resample_imu(ss.imu, clock.clock, ss.kinect.time[rows],
+                               source=ss.imu_source or "IMU")
+            if res.valid[~filled].all():
+                imu = _take(res, _fill_gaps(res.valid))
+            else:
+                warnings.append("sync: the refined IMU clock leaves frames outside the IMU "
+                                "recording; kept the head-top clock's resampling")
+                clock = ss.imu_clock
+        except SyncError as exc:
+            warnings.append(f"sync: clock refinement on the fitted joints failed ({exc}); "
+                            f"kept the head-top estimate")
+    fc = (np.zeros((len(rows), 4), bool) if imu.foot_contacts is None
+          else np.asarray(imu.foot_contacts, bool))
+    imu_params = imu_body_params(imu, align, betas, full)
+    if cfg.fuse:
+        fused = fuse_motion(fit.params, imu_params, rel, fc, config=cfg.fusion,
+                            fps=1.0 / ss.kinect.period_s)
+    else:
+        fused = fit.params
+    verts, joints = _posed(full, fused)
+    fused_chamfer = _chamfers(verts, full.faces, clouds, views, present, occluders,
+                              bcfg.error_samples)
+    seconds["fusion"] = time.perf_counter() - t0
+    for m in warnings:
+        log.warning("%s", m)
+    return SessionFit(session=root, sync=ss, imu_clock=clock, rows=rows,
+                      time=ss.kinect.time[rows], clouds=clouds, views=views, imu=imu,
+                      imu_filled=filled, alignment=align, imu_params=imu_params, betas=betas,
+                      shape_source=shape_source, fit=fit, reliability=rel, foot_contact=fc,
+                      fit_chamfer=fit_chamfer, fused=fused, joints=joints.astype(np.float32),
+                      chamfer=fused_chamfer, seconds=seconds, warnings=warnings)
