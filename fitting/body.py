@@ -25,10 +25,22 @@ Objective per frame (every term (B,) in :mod:`couch.fitting.terms`):
   of COUCH Eq. 7–8 is a later step).
 
 Correspondences (nearest vertex / point) are searched without gradient every
-``correspond_every`` iterations (a k-d tree per frame, :mod:`couch.fitting.nearest`); between
-searches only the paired vertices are posed, by one batched matrix product
-(:mod:`couch.fitting.skinning`). The fit runs on the coarse body model first, then finishes on
-the full one; the parameters carry over unchanged (both models share joints and parameters).
+``correspond_every`` iterations (a k-d tree per frame, :mod:`couch.fitting.nearest`; the trees
+over the clouds are built once per fit, since the clouds do not move, and every search is
+bounded by ``max_distance``, beyond which a pair is dropped anyway); each pair's plane (normal,
+offset) is then fixed until the next search (:func:`couch.fitting.terms.plane_cost`). Between
+searches the mesh is posed by matrix products over all frames at once
+(:mod:`couch.fitting.skinning`): the coarse model whole, by one product shared by the frames,
+the full model only at each frame's distinct paired vertices (the pairs' union: a vertex is
+often the nearest of several points). The fit runs on the coarse body model first, then
+finishes on the full one; the parameters carry over unchanged (both models share joints and
+parameters).
+
+Cost (CPU, one thread, 60 frames of 4-camera clouds, default settings): ~13 ms per frame
+batched, about half of it the nearest-neighbour searches (k-d tree builds and queries, ~0.5 µs
+a query) and most of the rest the posing of paired vertices and the data term; fitted one frame
+at a time the same work costs >10x more, the optimisation's ~2,500 small torch operations per
+iteration then dominating (``python -m couch.tools.bench.fitting``).
 
 Clouds differ in size per frame: each is subsampled to at most ``points`` points (seeded by
 ``seed`` + frame number, see :mod:`couch.fitting.clouds`) and padded with a mask. A frame with
@@ -57,8 +69,8 @@ from couch.fitting.params import BodyParams
 from couch.fitting.skinning import Skinner
 from couch.fitting.terms import (
     bone_orientation_prior,
+    plane_cost,
     smoothness,
-    surface_cost,
     visible_vertices,
 )
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -69,6 +81,11 @@ __all__ = [
     "world_rotations",
 ]
 
+
+#: A body model is posed whole in the iterations (one product for all frames) when it has at
+#: most this many times as many vertices as the pairs use per frame (measured on CPU, 60
+#: frames: the whole coarse mesh, 1229 vertices, 3x faster than its ~850 paired ones).
+WHOLE_MESH_FACTOR = 2.0
 
 #: Joints whose bone-orientation prior weighs ``prior_extremity_weight``: wrists and hands.
 EXTREMITIES = tuple(JOINT_INDEX[n] for n in ("left_wrist", "right_wrist", "left_hand",
@@ -225,17 +242,24 @@ class Pairs:
     """Correspondences of one nearest-neighbour search (no gradient), B frames.
 
     vertex: (B,N+M) long, the body vertex of each pair: N cloud → body pairs (one per padded
-    cloud point), then M visible body → cloud pairs. cloud: (B,N+M,3) the pair's cloud point;
-    normal: (B,N+M,3) the plane normal (see :func:`couch.fitting.terms.surface_cost`);
+    cloud point), then M visible body → cloud pairs. normal: (B,3,N+M) the plane normal, xyz
+    first (see :func:`couch.fitting.terms.surface_cost`); offset: (B,N+M) metres, normal ·
+    the pair's cloud point (:func:`couch.fitting.terms.plane_cost`);
     weight: (B,N+M) each pair's weight: 0 for an invalid pair, else ``w_points`` (cloud → body)
     or ``w_surface`` (body → cloud) over the frame's number of valid pairs of that direction,
     so the sum is the weighted sum of the two directions' means.
+    union: (B,U) long, the distinct vertices of each frame's valid pairs (padded with vertex 0):
+    a vertex is often the nearest of several points, so posing ``union`` and gathering is
+    cheaper than posing every pair's vertex. slot: (B,3,N+M) long, each pair's position in
+    ``union``, repeated over xyz for :func:`torch.gather` (0 for an invalid pair).
     """
 
     vertex: torch.Tensor
-    cloud: torch.Tensor
     normal: torch.Tensor
+    offset: torch.Tensor
     weight: torch.Tensor
+    union: torch.Tensor
+    slot: torch.Tensor
 
 
 def find_pairs(verts: np.ndarray, vnormals: np.ndarray, visible: np.ndarray,
@@ -243,8 +267,9 @@ def find_pairs(verts: np.ndarray, vnormals: np.ndarray, visible: np.ndarray,
                cfg: BodyFitConfig, search: int, device: torch.device, dtype: torch.dtype
                ) -> Pairs:
     """Both directions' nearest neighbours for the posed meshes ``verts`` (B,V,3) with vertex
-    normals (B,V,3) and ``visible`` (B,V) vertices; ``cloud_tree`` is the clouds'
-    :class:`BatchedTree` (built once per fit).
+    normals (B,V,3) (any memory layout, e.g. views of :meth:`Skinner.posed_mesh`'s (B,3,V)) and
+    ``visible`` (B,V) vertices; ``cloud_tree`` is the clouds' :class:`BatchedTree` (built once
+    per fit). Both searches stop at ``cfg.max_distance``.
 
     Cloud → body: every real point and its nearest visible vertex (a seen point lies on
     surface facing a camera). Visible body → cloud: at most ``cfg.surface_points`` visible
@@ -255,9 +280,10 @@ def find_pairs(verts: np.ndarray, vnormals: np.ndarray, visible: np.ndarray,
     """
     pts, pmask, pn = clouds.points, clouds.mask, clouds.normals
     b = len(verts)
-    p_idx, p_dist = BatchedTree(verts, visible).query(pts, pmask)
+    rows = np.arange(b)[:, None]
+    p_idx, p_dist = BatchedTree(verts, visible).query(pts, pmask, cfg.max_distance)
     p_ok = pmask & (p_dist < cfg.max_distance)
-    p_normal = np.take_along_axis(vnormals, p_idx[..., None], 1)
+    p_normal = vnormals[rows, p_idx]
     if pn is not None:
         p_ok &= np.einsum("tnk,tnk->tn", pn, p_normal) > 0
     chosen = []
@@ -273,26 +299,47 @@ def find_pairs(verts: np.ndarray, vnormals: np.ndarray, visible: np.ndarray,
     for k, c in enumerate(chosen):
         s_vid[k, :len(c)] = c
         s_sel[k, :len(c)] = True
-    s_idx, s_dist = cloud_tree.query(np.take_along_axis(verts, s_vid[..., None], 1), s_sel)
+    s_idx, s_dist = cloud_tree.query(verts[rows, s_vid], s_sel, cfg.max_distance)
     s_ok = s_sel & (s_dist < cfg.max_distance)
-    s_cloud = np.take_along_axis(pts, s_idx[..., None], 1)
-    s_norm = np.take_along_axis(vnormals, s_vid[..., None], 1)
+    s_cloud = pts[rows, s_idx]
+    s_norm = vnormals[rows, s_vid]
     if pn is not None:
-        point_normal = np.take_along_axis(pn, s_idx[..., None], 1)
+        point_normal = pn[rows, s_idx]
         s_ok &= np.einsum("tmk,tmk->tm", s_norm, point_normal) > 0
         s_norm = point_normal
 
+    vertex = np.concatenate([p_idx, s_vid], 1)
+    ok = np.concatenate([p_ok, s_ok], 1)
+    union, slot = _union(vertex, ok, verts.shape[1])
+    normal = np.concatenate([p_normal, s_norm], 1)
+    offset = np.einsum("tpk,tpk->tp", normal, np.concatenate([pts, s_cloud], 1))
+    weight = np.concatenate([p_ok / np.maximum(p_ok.sum(1, keepdims=True), 1) * cfg.w_points,
+                             s_ok / np.maximum(s_ok.sum(1, keepdims=True), 1) * cfg.w_surface],
+                            1)
+
     def t(x: np.ndarray, dt: torch.dtype | None = None) -> torch.Tensor:
-        return torch.as_tensor(x, dtype=dt, device=device)
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=dt, device=device)
 
-    def mean_weights(ok: np.ndarray, w: float) -> np.ndarray:
-        return ok * (w / np.maximum(ok.sum(1, keepdims=True), 1))
+    # xyz first, (B,3,P), for the per-pair sums over xyz; a contiguous (B,3,P) gather index
+    # (torch.gather is ~1.5x faster with it than with an expanded one)
+    return Pairs(vertex=t(vertex), normal=t(normal.transpose(0, 2, 1), dtype),
+                 offset=t(offset, dtype), weight=t(weight, dtype), union=t(union),
+                 slot=t(np.repeat(slot[:, None], 3, axis=1)))
 
-    return Pairs(vertex=t(np.concatenate([p_idx, s_vid], 1)),
-                 cloud=t(np.concatenate([pts, s_cloud], 1), dtype),
-                 normal=t(np.concatenate([p_normal, s_norm], 1), dtype),
-                 weight=t(np.concatenate([mean_weights(p_ok, cfg.w_points),
-                                          mean_weights(s_ok, cfg.w_surface)], 1), dtype))
+
+def _union(vertex: np.ndarray, ok: np.ndarray, num_vertices: int
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct vertices (B,U) of each frame's valid pairs (``vertex`` (B,P) where ``ok``),
+    ascending, padded with 0, and each pair's position (B,P) among them (0 where not ok)."""
+    b = len(vertex)
+    used = np.zeros((b, num_vertices), bool)
+    used[np.broadcast_to(np.arange(b)[:, None], vertex.shape)[ok], vertex[ok]] = True
+    rows, cols = np.nonzero(used)  # row-major: each frame's vertices ascending
+    counts = used.sum(1)
+    union = np.zeros((b, max(int(counts.max(initial=0)), 1)), np.int64)
+    union[rows, np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)] = cols
+    position = np.cumsum(used, axis=1) - 1
+    return union, np.where(ok, np.take_along_axis(position, vertex, 1), 0)
 
 
 def optimise(stages: Sequence[Stage], clouds: PaddedClouds, init: BodyParams,
@@ -340,6 +387,8 @@ def optimise(stages: Sequence[Stage], clouds: PaddedClouds, init: BodyParams,
         opt = torch.optim.Adam(groups)
         pairs: Pairs | None = None
         selected: torch.Tensor | None = None
+        whole = False
+        vertex_index: torch.Tensor | None = None
         for it in range(stage.iters):
             local = rot0 @ axis_angle_to_matrix(delta)
             v_shaped, rest_joints = skin.rest(betas)
@@ -351,15 +400,30 @@ def optimise(stages: Sequence[Stage], clouds: PaddedClouds, init: BodyParams,
                 pairs = find_pairs(full.cpu().numpy(), vn.cpu().numpy(), vis.cpu().numpy(),
                                    clouds, cloud_tree, frame_ids, cfg, search, dev, dt)
                 search += 1
+                # A small model (the coarse one) is posed whole, by one product shared by all
+                # frames, which beats a per-frame product over the paired vertices until
+                # these are well under half the mesh (then, the full model, the pairs' union).
+                whole = (skin.model.posedirs is None
+                         and skin.num_vertices <= WHOLE_MESH_FACTOR * pairs.union.shape[1])
+                vertex_index = (pairs.vertex[:, None].expand(-1, 3, -1).contiguous() if whole
+                                else None)
                 # with the shape fixed, the paired vertices' weighted rest positions hold until
                 # the next search (and pose correctives, if any, are not precomputable)
                 selected = (None if stage.fit_betas or skin.model.posedirs is not None
-                            else skin.select(v_shaped.detach(), pairs.vertex))
-            body = skin.vertices(posed, v_shaped, pairs.vertex, selected)
+                            else skin.rest_matrix(v_shaped.detach()) if whole
+                            else skin.select(v_shaped.detach(), pairs.union))
+            # the pairs' body vertices, (B,3,P) xyz first
+            if whole:
+                mesh = skin.mesh(skin.transform_matrix(posed),
+                                 skin.rest_matrix(v_shaped) if selected is None else selected)
+                body = torch.gather(mesh, 2, vertex_index)
+            else:
+                union = skin.vertices(posed, v_shaped, pairs.union, selected)  # (B,U,3)
+                body = torch.gather(union.transpose(1, 2), 2, pairs.slot)
             # both directions in one pass: w_points · mean over cloud → body pairs +
             # w_surface · mean over body → cloud pairs, as per-pair weights
-            per_frame = surface_cost(pairs.cloud, body, pairs.normal, pairs.weight,
-                                     sigma=cfg.sigma, margin=cfg.clothing_margin)
+            per_frame = plane_cost(pairs.normal, pairs.offset, body, pairs.weight,
+                                   sigma=cfg.sigma, margin=cfg.clothing_margin)
             per_frame = per_frame + cfg.w_prior * bone_orientation_prior(
                 posed.orient, orient0, prior_sigma, prior_weights)
             per_frame = per_frame + cfg.w_limits * joint_limit_penalty(local[:, 1:])
@@ -414,14 +478,28 @@ def evaluate_fit(params: BodyParams, clouds: Sequence[Any], cameras: np.ndarray 
     t = params.num_frames
     joints = np.zeros((t, 24, 3), np.float32)
     err = np.full((3, t), np.nan)
+    if not errors:
+        # the skeleton alone: posing every vertex only to read the joints costs more than
+        # the joints themselves (same kinematic chain as the model's forward)
+        skin = Skinner(model)
+        with torch.no_grad():
+            _, rest = skin.rest(torch.as_tensor(params.betas, dtype=model.dtype,
+                                                device=model.device))
+            for a in range(0, t, cfg.batch_frames):
+                sl = slice(a, min(t, a + cfg.batch_frames))
+                aa = np.concatenate([params.global_orient[sl], params.body_pose[sl]], 1)
+                local = axis_angle_to_matrix(torch.as_tensor(
+                    aa.reshape(-1, 24, 3), dtype=model.dtype, device=model.device))
+                posed = skin.pose(local, rest, torch.as_tensor(
+                    params.transl[sl], dtype=model.dtype, device=model.device))
+                joints[sl] = posed.joints.cpu().numpy()
+        return joints, err[0], err[1], err[2]
     for a in range(0, t, cfg.batch_frames):
         sl = slice(a, min(t, a + cfg.batch_frames))
         with torch.no_grad():
             out = model(betas=params.betas[None], global_orient=params.global_orient[sl],
                         body_pose=params.body_pose[sl], transl=params.transl[sl])
         joints[sl] = out.joints.cpu().numpy()
-        if not errors:
-            continue
         verts = out.vertices.cpu().numpy()
         for k in range(sl.start, sl.stop):
             pts, _ = cloud_arrays(clouds[k])

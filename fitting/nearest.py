@@ -3,7 +3,8 @@
 One scipy ``cKDTree`` per frame, built once and queried many times (a session's clouds are fixed
 during a fit). Measured here on 60 frames: a tree per frame builds and queries 2-3x faster than a
 single tree over all frames shifted apart (smaller trees stay in cache), so the loop over frames
-is the fast way, and batching pays off in the torch optimisation instead.
+is the fast way, and batching pays off in the torch optimisation instead. A query may be bounded
+by a distance (``max_distance``), which prunes the search for points with nothing near.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ class BatchedTree:
     """
 
     def __init__(self, targets: np.ndarray, mask: np.ndarray | None = None) -> None:
-        x = np.asarray(targets, dtype=np.float64)
+        x = np.asarray(targets)  # any float dtype and layout; each frame's subset is converted
         if x.ndim != 3 or x.shape[2] != 3:
             raise ValueError(f"targets must be (T, K, 3), got {x.shape}")
         xm = np.ones(x.shape[:2], bool) if mask is None else np.asarray(mask, bool)
@@ -31,23 +32,30 @@ class BatchedTree:
             raise ValueError(f"mask {xm.shape} must be (T, K) = {x.shape[:2]}")
         self.frames = len(x)
         self.ids = [np.flatnonzero(m) for m in xm]  # each frame's allowed target indices
-        # sliding-midpoint, non-compact trees build faster than the defaults and query as fast
-        self.trees = [cKDTree(x[t, ids], balanced_tree=False, compact_nodes=False)
+        # sliding-midpoint, non-compact trees build faster than the defaults and query as fast;
+        # leaves of 32 points (not 16) build and query ~10% faster on body meshes and clouds
+        # of 1-13k points; each tree gets a fresh float64 copy of its frame's allowed targets,
+        # so it need not copy them again
+        self.trees = [cKDTree(np.asarray(x[t][ids], dtype=np.float64), leafsize=32,
+                              balanced_tree=False, compact_nodes=False, copy_data=False)
                       if len(ids) else None for t, ids in enumerate(self.ids)]
 
-    def query(self, queries: np.ndarray, mask: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, queries: np.ndarray, mask: np.ndarray | None = None,
+              max_distance: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Each query point's nearest target of the same frame.
 
         Args:
             queries: (T,M,3) points (T as the targets).
             mask: (T,M) bool queries to answer (default all).
+            max_distance: targets farther than this (metres) are not looked for, which
+                prunes the search (the caller drops such pairs anyway).
 
         Returns:
             index (T,M) int64 into each frame's targets, and distance (T,M) float64; index 0
-            and distance ``inf`` for a masked query, or in a frame without allowed targets.
+            and distance ``inf`` for a masked query, in a frame without allowed targets, or
+            with no target within ``max_distance``.
         """
-        q = np.asarray(queries, dtype=np.float64)
+        q = np.asarray(queries)
         if q.ndim != 3 or q.shape[2] != 3 or len(q) != self.frames:
             raise ValueError(f"queries must be ({self.frames}, M, 3), got {q.shape}")
         t, m = q.shape[:2]
@@ -58,8 +66,10 @@ class BatchedTree:
             sel = np.flatnonzero(qm[k])
             if tree is None or not len(sel):
                 continue
-            d, j = tree.query(q[k, sel])
-            index[k, sel] = ids[j]
+            d, j = tree.query(np.asarray(q[k, sel], dtype=np.float64),
+                              distance_upper_bound=max_distance)
+            found = np.isfinite(d)  # none within max_distance: cKDTree answers (inf, n)
+            index[k, sel] = np.where(found, ids[np.minimum(j, len(ids) - 1)], 0)
             dist[k, sel] = d
         return index, dist
 

@@ -11,10 +11,12 @@ Sign convention of the surface residuals: positive when the cloud lies *outside*
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 __all__ = [
-    "bone_orientation_prior", "clothing_residual", "geman_mcclure", "smoothness",
+    "bone_orientation_prior", "clothing_residual", "geman_mcclure", "plane_cost", "smoothness",
     "surface_cost", "vertex_normals", "visible_vertices",
 ]
 
@@ -35,8 +37,11 @@ def visible_vertices(vertices: torch.Tensor, normals: torch.Tensor,
     the cameras could have seen (self-occlusion is not tested). All True without cameras."""
     if cameras is None:
         return torch.ones(vertices.shape[:2], dtype=torch.bool, device=vertices.device)
-    to_cam = cameras[None, None] - vertices[:, :, None]  # (B,V,C,3)
-    return (torch.einsum("bvck,bvk->bvc", to_cam, normals) > 0).any(-1)
+    # (c - v) · n > 0  <=>  c · n > v · n: no (B,V,C,3) of vectors to the cameras; (C,3) @
+    # (B,3,V) is one product without a copy when the meshes are views of (B,3,V) tensors
+    # (as Skinner.posed_mesh gives them)
+    facing = cameras.to(normals.dtype) @ normals.transpose(-1, -2)  # (B,C,V)
+    return (facing > (vertices * normals).sum(-1)[:, None]).any(1)
 
 
 def geman_mcclure(r: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -73,8 +78,54 @@ def surface_cost(cloud: torch.Tensor, body: torch.Tensor, normal: torch.Tensor,
     Returns:
         (B,) Σ weight · Geman-McClure(residual) per frame.
     """
-    r = ((cloud - body) * normal).sum(-1)
+    return plane_cost(normal.transpose(1, 2), (cloud * normal).sum(-1), body.transpose(1, 2),
+                      weight, sigma=sigma, margin=margin)
+
+
+def plane_cost(normal: torch.Tensor, offset: torch.Tensor, body: torch.Tensor,
+               weight: torch.Tensor, *, sigma: float, margin: float = 0.0) -> torch.Tensor:
+    """:func:`surface_cost` with each pair's plane precomputed and xyz first: the residual is
+    ``offset − normal · body`` with ``offset = normal · cloud``, fixed between correspondence
+    searches, so an iteration spends one product and a three-row sum per pair.
+
+    Args:
+        normal: (B,3,K) unit normals; offset: (B,K) metres, normal · cloud point.
+        body: (B,3,K) the pairs' body vertices (differentiable).
+        weight: (B,K) each pair's weight (0: the pair does not count).
+        sigma: robust scale (m); margin: clothing allowance (m), see :func:`clothing_residual`.
+
+    Returns:
+        (B,) Σ weight · Geman-McClure(residual) per frame.
+
+    The gradient reaches ``body`` through a hand-written backward (one product per pair instead
+    of autograd's chain of some ten element-wise passes over the pairs, ~3x faster); when
+    ``normal``, ``offset`` or ``weight`` need a gradient too, plain autograd is used.
+    """
+    if not (normal.requires_grad or offset.requires_grad or weight.requires_grad):
+        return _PlaneCost.apply(normal, offset, body, weight, sigma, margin)
+    r = offset - (body * normal).sum(1)
     return (weight * geman_mcclure(clothing_residual(r, margin), sigma)).sum(-1)
+
+
+class _PlaneCost(torch.autograd.Function):
+    """:func:`plane_cost` with its gradient w.r.t. ``body`` only. With e the clothing residual
+    and c = e², the cost per pair is w·c/(c + σ²) and its derivative by the residual
+    w·2eσ²/(c + σ²)² (the clothing band, where e = 0, has zero derivative either way); the
+    residual's derivative by the body vertex is −normal."""
+
+    @staticmethod
+    def forward(ctx: Any, normal: torch.Tensor, offset: torch.Tensor, body: torch.Tensor,
+                weight: torch.Tensor, sigma: float, margin: float) -> torch.Tensor:
+        e = clothing_residual(offset - (body * normal).sum(1), margin)
+        c = e * e
+        denom = c + sigma * sigma
+        ctx.save_for_backward(normal, weight * e / denom.square() * (2.0 * sigma * sigma))
+        return (weight * (c / denom)).sum(-1)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        normal, slope = ctx.saved_tensors
+        return None, None, normal * (slope * -grad[:, None])[:, None], None, None, None
 
 
 def bone_orientation_prior(orient: torch.Tensor, orient0: torch.Tensor, sigma: float,

@@ -49,10 +49,11 @@ from couch.fitting import (
     mpjpe,
     pad_clouds,
 )
-from couch.fitting.body import evaluate_fit
+from couch.fitting.body import _union, evaluate_fit
 from couch.fitting.limits import joint_limit_excess
-from couch.fitting.nearest import batched_nearest
+from couch.fitting.nearest import BatchedTree, batched_nearest
 from couch.fitting.skinning import Skinner
+from couch.fitting.terms import clothing_residual, geman_mcclure, plane_cost, surface_cost
 from couch.rotations import axis_angle_to_matrix
 from couch.tools.bench.fitting import imu_like_init, session_clouds
 from couch.tools.sim.clothing import CLOTHING_FILE, clothed_vertices, load_clothing
@@ -245,6 +246,44 @@ def test_batched_nearest_matches_a_tree_per_frame():
         np.testing.assert_allclose(dist[t], d)
         np.testing.assert_array_equal(idx[t], allowed[j])
     assert np.isinf(dist[2]).all()
+    # bounded: the same answer within the bound, none beyond it
+    bidx, bdist = BatchedTree(x, xmask).query(q, max_distance=0.2)
+    near = dist < 0.2
+    np.testing.assert_array_equal(bidx[near], idx[near])
+    np.testing.assert_allclose(bdist[near], dist[near])
+    assert np.isinf(bdist[~near]).all() and (bidx[~near] == 0).all()
+
+
+def test_pair_union_positions():
+    rng = np.random.default_rng(4)
+    vertex = rng.integers(0, 30, (3, 50))
+    ok = rng.random((3, 50)) < 0.7
+    ok[2] = False  # a frame without valid pairs
+    union, slot = _union(vertex, ok, 30)
+    for t in range(3):
+        np.testing.assert_array_equal(union[t, :len(np.unique(vertex[t, ok[t]]))],
+                                      np.unique(vertex[t, ok[t]]))
+        np.testing.assert_array_equal(union[t, slot[t, ok[t]]], vertex[t, ok[t]])
+        assert (slot[t, ~ok[t]] == 0).all()
+
+
+def test_plane_cost_matches_autograd():
+    gen = torch.Generator().manual_seed(5)
+    normal = torch.nn.functional.normalize(torch.randn(2, 40, 3, generator=gen), dim=-1)
+    cloud = torch.randn(2, 40, 3, generator=gen) * 0.03
+    body = (cloud + torch.randn(2, 40, 3, generator=gen) * 0.03).double().requires_grad_(True)
+    weight = torch.rand(2, 40, generator=gen).double()
+    normal, cloud = normal.double(), cloud.double()
+    r = ((cloud - body) * normal).sum(-1)
+    want = (weight * geman_mcclure(clothing_residual(r, 0.02), 0.02)).sum(-1)
+    (want_grad,) = torch.autograd.grad(want.sum() * 3.0, body)
+    got = surface_cost(cloud, body, normal, weight, sigma=0.02, margin=0.02)
+    (got_grad,) = torch.autograd.grad(got.sum() * 3.0, body)
+    torch.testing.assert_close(got, want)
+    torch.testing.assert_close(got_grad, want_grad)
+    offset = (cloud * normal).sum(-1)
+    torch.testing.assert_close(plane_cost(normal.transpose(1, 2), offset, body.transpose(1, 2),
+                                          weight, sigma=0.02, margin=0.02), want)
 
 
 def test_skinner_matches_the_body_model():
@@ -266,6 +305,9 @@ def test_skinner_matches_the_body_model():
                                want)
     torch.testing.assert_close(posed.joints, out.joints)
     torch.testing.assert_close(posed.orient, out.joint_transforms[..., :3, :3])
+    torch.testing.assert_close(
+        skin.mesh(skin.transform_matrix(posed), skin.rest_matrix(v_shaped)).transpose(1, 2),
+        out.vertices)
     verts, normals = skin.posed_mesh(posed, v_shaped)
     torch.testing.assert_close(verts, out.vertices)
     torch.testing.assert_close(torch.linalg.vector_norm(normals, dim=-1),
