@@ -81,6 +81,7 @@ __all__ = [
     "COLOR_RESOLUTIONS",
     "COLOR_SENSOR_SIZE",
     "DEPTH_MODES",
+    "DEPTH_RANGE_M",
     "DEPTH_SENSOR_SIZE",
     "CameraIntrinsics",
     "KinectCalibration",
@@ -117,6 +118,15 @@ DEPTH_MODES: dict[str, ModeInfo] = {
     "WFOV_2X2BINNED": ModeInfo(512, 512, 0, 0, 512, 512),
     "WFOV_UNBINNED": ModeInfo(1024, 1024, 0, 0, 1024, 1024),
     "PASSIVE_IR": ModeInfo(1024, 1024, 0, 0, 1024, 1024),
+}
+
+#: Depth modes -> operating range (min, max) in metres of Z, from the Azure Kinect DK hardware
+#: specification (15-95 % reflectivity); depth outside it comes back invalid (0).
+DEPTH_RANGE_M: dict[str, tuple[float, float]] = {
+    "NFOV_2X2BINNED": (0.5, 5.46),
+    "NFOV_UNBINNED": (0.5, 3.86),
+    "WFOV_2X2BINNED": (0.25, 2.88),
+    "WFOV_UNBINNED": (0.25, 2.21),
 }
 
 #: Colour resolutions (the part after ``MJPG_`` in ``K4A_COLOR_MODE``) -> mode info.

@@ -98,30 +98,46 @@ class SurfaceDistances:
 
 @dataclasses.dataclass(frozen=True)
 class CameraView:
-    """What one depth camera sees: its world pose and intrinsics (for the visibility of
-    surface samples: inside the image, in front of the camera).
+    """What one depth camera sees: its world pose, intrinsics and, optionally, the static scene
+    in front of it (for the visibility of surface samples).
 
     Attributes:
         world_from_camera: (4,4) world pose of the depth camera (metres).
         intrinsics: its :class:`~couch.capture.azure_calibration.CameraIntrinsics`.
+        background: (H,W) metres of Z of the empty room per pixel (``inf``: nothing in range),
+            e.g. the segmentation's :attr:`~couch.capture.segmentation.BackgroundModel.depth`:
+            a point behind it (furniture, a wall, the chair) is hidden. None: not tested.
+        margin: how far in front of the background a point must be to count as seen (metres;
+            the segmentation cuts the person off where it touches the room).
+        depth_range: (min, max) metres of Z the camera measures (e.g. ``DEPTH_RANGE_M`` of its
+            depth mode), or None.
     """
 
     world_from_camera: np.ndarray
     intrinsics: CameraIntrinsics
+    background: np.ndarray | None = None
+    margin: float = 0.03
+    depth_range: tuple[float, float] | None = None
 
     @property
     def centre(self) -> np.ndarray:
         return np.asarray(self.world_from_camera, np.float64)[:3, 3]
 
     def in_view(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: world points (N,3) that project inside the image."""
+        """(N,) bool: world points (N,3) that project inside the image, within the depth range
+        and in front of the background (those given)."""
         pose = np.asarray(self.world_from_camera, np.float64)
         cam = (np.asarray(points, np.float64) - pose[:3, 3]) @ pose[:3, :3]
         uv, ok = project_points(cam, self.intrinsics)
         w, h = self.intrinsics.width, self.intrinsics.height
-        with np.errstate(invalid="ignore"):
-            return ok & (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) \
-                & (uv[:, 1] <= h - 0.5)
+        px = np.where(ok[:, None], np.round(np.nan_to_num(uv)), -1).astype(np.int64)
+        ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        if self.depth_range is not None:
+            ok &= (cam[:, 2] >= self.depth_range[0]) & (cam[:, 2] <= self.depth_range[1])
+        if self.background is not None:
+            bg = np.asarray(self.background)[px[ok, 1], px[ok, 0]]
+            ok[ok] = cam[ok, 2] < bg - self.margin
+        return ok
 
 
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,

@@ -49,6 +49,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from couch.body import BodyModel
+from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
 from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
 from couch.capture.segmentation import (
@@ -404,7 +405,9 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
             masks.append(None if f is None else f.person_reliable)
         clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
                                   time=float(kinect.time[r]), config=cloud))
-    views = [CameraView(p, s.calibration.depth) for p, s in zip(poses, segs, strict=True)]
+    views = [CameraView(p, s.calibration.depth, s.background.depth,
+                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode))
+             for p, s in zip(poses, segs, strict=True)]
     return clouds, views, warnings
 
 

@@ -6,9 +6,9 @@ dropped frames, IMU clock offset -0.9 s and drift 40 ppm, seed 1 (a walk in, sit
 sofa, seated). The true camera poses stand in for the calibration (tested in
 test_capture_calibration) and the true chair pose for its registration (issue 8).
 
-Measured when written (``pytest -s``): IMU offset error ~1 ms; heading error < 0.2°; MPJPE
-IMU 2.2 cm, per-frame fit 1.4 cm, fused 1.6 cm (seated 1.0 cm); chamfer fit <= the true body's;
-jitter fused / truth ~0.98.
+Measured when written (``pytest -s``): IMU offset error -0.07 ms; heading error -0.23°; MPJPE
+IMU 2.03 cm, per-frame fit 1.05 cm, fused 1.05 cm; chamfer (visible surface) fit 1.54, fused
+1.63, true body 1.82 cm; jitter fused / truth 0.99.
 """
 
 from __future__ import annotations

@@ -207,11 +207,14 @@ def test_background_recording_is_the_empty_room(session):
         first = next(iter(open_azure_mkv(out / dev["file"]))).depth_mm.astype(np.float32)
         b = bg[0].depth_mm.astype(np.float32)
         both = (first > 0) & (b > 0)
-        same = np.abs(first - b)[both] < 30  # mm
+        # 30 mm, growing with depth: far floor is seen at grazing angles, where the lateral
+        # jitter of the depth edges moves the depth by centimetres (binned range reaches 5.46 m)
+        tol = 30.0 + 0.01 * first[both]
+        same = np.abs(first - b)[both] < tol  # mm
         assert 0.6 < same.mean() < 0.99  # the person covers a part of the image
         # nothing in the empty room stands in front of what the session saw (but depth-edge
         # jitter and flying pixels)
-        assert np.mean(b[both] >= first[both] - 30) > 0.98
+        assert np.mean(b[both] >= first[both] - tol) > 0.98
 
 
 def test_contact_sheet_tool(session, tmp_path):

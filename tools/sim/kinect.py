@@ -39,7 +39,7 @@ import open3d as o3d
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from couch.capture.azure_calibration import CameraIntrinsics, KinectCalibration
+from couch.capture.azure_calibration import DEPTH_RANGE_M, CameraIntrinsics, KinectCalibration
 from couch.capture.charuco import BoardSpec, board_image
 from couch.capture.registration import UNDISTORT_CRITERIA
 from couch.geometry import invert_transform, look_at, make_transform, vertex_normals
@@ -502,7 +502,8 @@ class DepthNoise:
     probability ``flying_prob``, a mix ``w·z + (1−w)·z_neighbour`` with w ~ U(0, 1).
 
     Invalid (0): nothing hit; incidence beyond ``max_incidence_deg``; measured Z outside
-    ``depth_range``; a random ``dropout`` fraction; and, with ``fov_cut`` > 0, the corners the NFOV
+    ``depth_range`` (default: the depth mode's operating range, ``DEPTH_RANGE_M``); a random
+    ``dropout`` fraction; and, with ``fov_cut`` > 0, the corners the NFOV
     illuminator leaves dark: ``|u−W/2|/(W/2) + |v−H/2|/(H/2) > fov_cut`` (an octagon).
     """
 
@@ -516,7 +517,7 @@ class DepthNoise:
     flying_prob: float = 0.3
     edge_jump: float = 0.04
     max_incidence_deg: float = 80.0
-    depth_range: tuple[float, float] = (0.5, 3.86)
+    depth_range: tuple[float, float] | None = None  # None: the depth mode's (DEPTH_RANGE_M)
     dropout: float = 0.002
     fov_cut: float = 1.6
 
@@ -631,7 +632,9 @@ def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np
         z_meas += sigma * rng.standard_normal((h, w), dtype=np.float32)
 
     valid = (z > 0) & (cos_m >= cos_lim)
-    valid &= (z_meas >= noise.depth_range[0]) & (z_meas <= noise.depth_range[1])
+    lo, hi = (noise.depth_range if noise.depth_range is not None
+              else DEPTH_RANGE_M[calib.depth_mode])
+    valid &= (z_meas >= lo) & (z_meas <= hi)
     if noise.dropout > 0:
         valid &= rng.random((h, w), dtype=np.float32) >= noise.dropout
     if noise.fov_cut > 0:
