@@ -332,7 +332,9 @@ def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud]
               views: Sequence[CameraView], present: np.ndarray,
               occluders: tuple[np.ndarray, np.ndarray] | None, samples: int) -> np.ndarray:
     """(T,) chamfer of posed meshes (T,V,3) to their clouds, the surface counted where one of
-    the cameras that recorded the frame (``present`` (T,C)) could see it; NaN: no points."""
+    the cameras that recorded the frame (``present`` (T,C)) could see it; NaN: no points.
+    The whole cloud counts: a subsampled one would leave the surface farther from its nearest
+    point and raise the surface → points half."""
     out = np.full(len(verts), np.nan)
     for k, cloud in enumerate(clouds):
         pts = cloud_arrays(cloud)[0]

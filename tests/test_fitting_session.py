@@ -1,14 +1,17 @@
 """The body of a whole session (fitting/session.py): sync → clouds → IMU alignment → shape →
 per-frame fits → fusion, on a simulated session, against the simulator's ground truth.
 
-Session (generated once here, depth only, ~1 min): 10 s, 5 fps, 4 cameras, 320x288 depth, 5 %
-dropped frames, IMU clock offset -0.9 s and drift 40 ppm, seed 1 (a walk in, sitting down on a
-sofa, seated). The true camera poses stand in for the calibration (tested in
-test_capture_calibration) and the true chair pose for its registration (issue 8).
+Sessions (:data:`SESSIONS`, generated once here, depth only, ~1 min each): 10 s, 4 cameras,
+320x288 depth, dropped frames, different seeds, frame rates, IMU clock offsets and drifts. The
+true camera poses stand in for the calibration (tested in test_capture_calibration) and the true
+chair pose for its registration (issue 8). The drift itself is measured on a 2-minute session in
+test_sync (10 s cannot show 20 ppm).
 
-Measured when written (``pytest -s``): IMU offset error -0.07 ms; heading error -0.23°; MPJPE
-IMU 2.03 cm, per-frame fit 1.05 cm, fused 1.05 cm; chamfer (visible surface) fit 1.54, fused
-1.63, true body 1.82 cm; jitter fused / truth 0.99.
+Measured when written (``pytest -s``), sessions a / b: IMU offset error -0.07 / -1.12 ms;
+heading error -0.23 / +0.41 deg; MPJPE IMU 2.03 / 1.72, per-frame fit 1.05 / 1.23, fused
+1.06 / 1.32 cm; chamfer (visible surface) fit 1.54 / 1.82, fused 1.63 / 1.90, true body
+1.82 / 2.12 cm; jitter fused / truth 0.99 / 0.95; foot skate in the IMU's contact frames 3.73 mm
+per frame at 5 fps / 0.53 at 15 fps (0.62 / 0.27 at 30 fps).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numpy as np
 import pytest
 
 from couch.capture.segmentation import ChairModel
-from couch.fitting import BodyParams, jitter, mpjpe
+from couch.fitting import BodyParams, foot_points, foot_skate, jitter, mpjpe
 from couch.fitting.body import cached_model
 from couch.fitting.session import (
     SessionFitConfig,
@@ -34,8 +37,14 @@ from couch.fitting.session import (
 from couch.schema import read_processed
 from couch.tools.sim.session import SessionConfig, simulate_session
 
-SESSION = dict(duration=10.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED", charuco_poses=1,
-               drop_rate=0.05, seed=1, clock_offset=-0.9, drift_ppm=40.0, color=False)
+COMMON = dict(duration=10.0, cameras=4, depth_mode="NFOV_2X2BINNED", charuco_poses=1,
+              color=False)
+SESSIONS = {
+    # walk in, sit down on a sofa, seated; the suit's clock 0.9 s behind and fast
+    "a": dict(fps=5.0, drop_rate=0.05, seed=1, clock_offset=-0.9, drift_ppm=40.0),
+    # another subject and chair; the suit started first, its clock slow; 15 fps
+    "b": dict(fps=15.0, drop_rate=0.03, seed=7, clock_offset=0.35, drift_ppm=-60.0),
+}
 
 
 def _posed(params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
@@ -45,72 +54,88 @@ def _posed(params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.fixture(scope="session")
-def sim(tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("fit_session")
-    simulate_session(root, SessionConfig(**SESSION), progress=False)
-    info = json.loads((root / "truth.json").read_text())
-    truth = read_processed(root / "ground_truth.h5")
-    ext = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
-    chair = ChairModel(truth.object_vertices, truth.object_faces, truth.object_pose)
-    return {"root": root, "info": info, "truth": truth, "ext": ext, "chair": chair}
+def sim(tmp_path_factory):
+    """``sim(name)`` → the simulated session and its fit, made once."""
+    cache: dict[str, dict] = {}
+
+    def get(name: str) -> dict:
+        if name not in cache:
+            root = tmp_path_factory.mktemp(f"fit_session_{name}")
+            simulate_session(root, SessionConfig(**COMMON, **SESSIONS[name]), progress=False)
+            info = json.loads((root / "truth.json").read_text())
+            truth = read_processed(root / "ground_truth.h5")
+            ext = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
+            chair = ChairModel(truth.object_vertices, truth.object_faces, truth.object_pose)
+            sf = fit_session(root, extrinsics=ext, chair=chair)
+            rows = np.searchsorted(truth.time, sf.time - 1e-4)
+            assert np.allclose(truth.time[rows], sf.time, atol=1e-3)
+            print(f"\n[{name}] {SESSIONS[name]}\n" + sf.summary())
+            cache[name] = {"root": root, "info": info, "truth": truth, "ext": ext,
+                           "chair": chair, "sf": sf, "rows": rows}
+        return cache[name]
+
+    return get
 
 
-@pytest.fixture(scope="session")
-def fitted(sim) -> dict:
-    sf = fit_session(sim["root"], extrinsics=sim["ext"], chair=sim["chair"])
-    truth = sim["truth"]
-    rows = np.searchsorted(truth.time, sf.time - 1e-4)
-    assert np.allclose(truth.time[rows], sf.time, atol=1e-3)
-    print("\n" + sf.summary())
-    return {"sf": sf, "rows": rows}
-
-
-def test_sync_and_heading(sim, fitted):
-    sf = fitted["sf"]
-    imu = sim["info"]["imu"]
+@pytest.mark.parametrize("name", list(SESSIONS))
+def test_sync_and_heading(sim, name):
+    """Issue 7: IMU clock offset error < 3 ms; the suit's heading found."""
+    s = sim(name)
+    sf, imu = s["sf"], s["info"]["imu"]
     head = 1e3 * (sf.sync.imu_clock.clock.offset_s - imu["clock_offset_s"])
     used = 1e3 * (sf.imu_clock.clock.offset_s - imu["clock_offset_s"])
     yaw_err = (sf.alignment.yaw_deg - imu["heading_offset_deg"] + 180.0) % 360.0 - 180.0
-    print(f"IMU offset error: head top {head:+.2f} ms, used {used:+.2f} ms; "
+    print(f"[{name}] IMU offset error: head top {head:+.2f} ms, used {used:+.2f} ms; "
           f"heading error {yaw_err:+.2f} deg")
     assert abs(used) < 3.0
     assert abs(yaw_err) < 1.0
 
 
-def test_body_accuracy_against_ground_truth(sim, fitted):
-    """Issue 7: MPJPE <= 2 cm; the fusion beats the IMU; chamfer no worse than the true body's;
-    the fused motion no more jittery than the truth + 10 %."""
-    sf, rows, truth = fitted["sf"], fitted["rows"], sim["truth"]
+@pytest.mark.parametrize("name", list(SESSIONS))
+def test_body_accuracy_against_ground_truth(sim, name):
+    """Issue 7: MPJPE <= 2 cm, the fusion beats the IMU, chamfer no worse than the true body's,
+    foot skate <= 2 mm/frame at 30 fps (60 mm/s) in the IMU's contact frames, jitter <= the
+    truth's + 10 %."""
+    from couch.fitting.session import _chamfers
+
+    s = sim(name)
+    sf, rows, truth, chair = s["sf"], s["rows"], s["truth"], s["chair"]
     true_joints = truth.joints[rows]
     _, imu_joints = _posed(sf.imu_params)
     e_imu = mpjpe(imu_joints, true_joints).mean()
     e_fit = mpjpe(sf.fit.joints, true_joints).mean()
     e_fused = mpjpe(sf.joints, true_joints).mean()
+    model = cached_model("couch-body")
     true_verts, _ = _posed(BodyParams.from_processed(truth).frames(rows))
-    from couch.fitting.session import _chamfers
-
-    chair = sim["chair"]
-    c_true = _chamfers(true_verts, cached_model("couch-body").faces, sf.clouds, sf.views,
+    c_true = _chamfers(true_verts, model.faces, sf.clouds, sf.views,
                        sf.sync.kinect.frame_table[sf.rows] >= 0,
                        (chair.vertices @ chair.world_from_object[:3, :3].T
                         + chair.world_from_object[:3, 3], chair.faces), 4000)
     both = np.isfinite(c_true) & np.isfinite(sf.fit_chamfer) & np.isfinite(sf.chamfer)
     fps = 1.0 / sf.sync.kinect.period_s
     jit = jitter(sf.joints, fps).mean() / jitter(true_joints, fps).mean()
-    print(f"MPJPE cm: IMU {e_imu * 100:.2f}, per-frame fit {e_fit * 100:.2f}, fused "
+    fused_verts, _ = _posed(sf.fused)
+    skate = foot_skate(foot_points(fused_verts, model.keypoint_ids), sf.foot_contact)
+    skate_true = foot_skate(foot_points(true_verts, model.keypoint_ids), sf.foot_contact)
+    print(f"[{name}] MPJPE cm: IMU {e_imu * 100:.2f}, per-frame fit {e_fit * 100:.2f}, fused "
           f"{e_fused * 100:.2f}; chamfer cm (visible surface, {both.sum()} frames): true body "
           f"{np.mean(c_true[both]) * 100:.2f}, fit {np.mean(sf.fit_chamfer[both]) * 100:.2f}, "
-          f"fused {np.mean(sf.chamfer[both]) * 100:.2f}; jitter fused / truth {jit:.2f}")
+          f"fused {np.mean(sf.chamfer[both]) * 100:.2f}; jitter fused / truth {jit:.2f}; "
+          f"foot skate in IMU contact mm/frame at {fps:g} fps: fused {skate.mean():.2f}, truth "
+          f"{skate_true.mean():.2f} ({len(skate)} steps); fused at 30 fps: "
+          f"{skate.mean() * fps / 30.0:.2f}")
     assert e_fit <= 0.02
     assert e_fused <= 0.02
     assert e_fused < e_imu
     assert np.mean(sf.fit_chamfer[both]) <= np.mean(c_true[both])
-    assert np.mean(sf.chamfer[both]) <= np.mean(c_true[both]) + 0.002
+    assert np.mean(sf.chamfer[both]) <= np.mean(c_true[both])
     assert jit <= 1.1
+    # the issue's 2 mm/frame is at the dataset's 30 fps: 60 mm/s of sliding
+    assert len(skate) > 10 and skate.mean() * fps / 30.0 <= 2.0
 
 
-def test_reliability_follows_the_data(fitted):
-    sf = fitted["sf"]
+def test_reliability_follows_the_data(sim):
+    sf = sim("a")["sf"]
     assert sf.reliability.shape == (len(sf.rows), 24)
     assert np.all(sf.reliability[sf.fit.fallback] == 0)
     assert ((sf.reliability >= 0) & (sf.reliability <= 1)).all()
@@ -151,11 +176,12 @@ def test_alignment_recovers_a_known_heading_and_origin():
 
 
 def test_session_without_imu_is_a_clear_error(sim, tmp_path):
+    s = sim("a")
     root = tmp_path / "no_imu"
-    shutil.copytree(sim["root"], root, ignore=shutil.ignore_patterns("imu", "*.mvnx"))
+    shutil.copytree(s["root"], root, ignore=shutil.ignore_patterns("imu", "*.mvnx"))
     manifest = json.loads((root / "session.json").read_text())
     manifest.pop("imu", None)
     (root / "session.json").write_text(json.dumps(manifest))
     with pytest.raises(SessionFitError, match="no IMU recording"):
-        fit_session(root, extrinsics=sim["ext"], chair=sim["chair"],
+        fit_session(root, extrinsics=s["ext"], chair=s["chair"],
                     config=dataclasses.replace(SessionFitConfig(), fuse=False))
