@@ -111,6 +111,8 @@ class CameraView:
             the segmentation cuts the person off where it touches the room).
         depth_range: (min, max) metres of Z the camera measures (e.g. ``DEPTH_RANGE_M`` of its
             depth mode), or None.
+        max_incidence_deg: surface seen more obliquely than this returns no depth (a
+            time-of-flight camera invalidates grazing returns), or None: no limit.
     """
 
     world_from_camera: np.ndarray
@@ -118,6 +120,7 @@ class CameraView:
     background: np.ndarray | None = None
     margin: float = 0.03
     depth_range: tuple[float, float] | None = None
+    max_incidence_deg: float | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -168,19 +171,20 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
     to_surface = (scene.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
                   if len(pts) else np.zeros(0))
-    sample = _sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
+    sample, normal = _sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
     if visible_from is not None:
         if occluders is not None:
             scene.add_triangles(o3d.core.Tensor(np.asarray(occluders[0], np.float32)),
                                 o3d.core.Tensor(np.asarray(occluders[1], np.uint32)))
-        sample = sample[_visible(scene, sample, visible_from)]
+        sample = sample[_visible(scene, sample, normal, visible_from)]
     to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
                  else np.full(len(sample), np.nan))
     return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
 
 
-def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarray:
-    """(n, 3) area-uniform samples of a triangle mesh."""
+def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) area-uniform samples of a triangle mesh and (n, 3) their faces' unit normals."""
     tri = v[f]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = np.linalg.norm(cross, axis=1)
@@ -188,13 +192,15 @@ def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarr
     face = rng.choice(len(f), size=n, p=area / area.sum())
     r1, r2 = rng.random((2, n, 1))
     s = np.sqrt(r1)
-    return (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2]
+    normal = cross[face] / np.maximum(area[face], 1e-30)[:, None]
+    return (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2], normal
 
 
-def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray,
+def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, normals: np.ndarray,
              cameras: np.ndarray | Sequence[CameraView]) -> np.ndarray:
     """(n,) bool: nothing of the scene lies between the point and at least one camera (and,
-    for a :class:`CameraView`, the point is inside its image)."""
+    for a :class:`CameraView`, the point is inside its image, in its range, in front of its
+    background and not seen more obliquely than its incidence limit)."""
     seen = np.zeros(len(pts), bool)
     views = (list(cameras) if len(cameras) and isinstance(cameras[0], CameraView)
              else [None] * len(cameras))
@@ -209,7 +215,12 @@ def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray,
         rays = np.concatenate([origin, d], axis=1).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
         unhidden = ~(hit < dist - 1e-3)
-        seen |= unhidden if view is None else unhidden & view.in_view(pts)
+        if view is not None:
+            unhidden &= view.in_view(pts)
+            if view.max_incidence_deg is not None:
+                cos = np.abs(np.einsum("ij,ij->i", d, normals))
+                unhidden &= cos >= np.cos(np.deg2rad(view.max_incidence_deg))
+        seen |= unhidden
     return seen
 
 

@@ -408,7 +408,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
                                   time=float(kinect.time[r]), config=cloud))
     views = [CameraView(p, s.calibration.depth, s.background.depth,
-                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode))
+                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
+                        max_incidence_deg=80.0)
              for p, s in zip(poses, segs, strict=True)]
     return clouds, views, warnings
 

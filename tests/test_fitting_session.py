@@ -8,10 +8,10 @@ chair pose for its registration (issue 8). The drift itself is measured on a 2-m
 test_sync (10 s cannot show 20 ppm).
 
 Measured when written (``pytest -s``), sessions a / b: IMU offset error -0.07 / -1.12 ms;
-heading error -0.23 / +0.41 deg; MPJPE IMU 2.03 / 1.72, per-frame fit 1.05 / 1.23, fused
-1.06 / 1.32 cm; chamfer (visible surface) fit 1.54 / 1.82, fused 1.63 / 1.90, true body
-1.82 / 2.12 cm; jitter fused / truth 0.99 / 0.95; foot skate in the IMU's contact frames 3.73 mm
-per frame at 5 fps / 0.53 at 15 fps (0.62 / 0.27 at 30 fps).
+heading error -0.24 / +0.40 deg; MPJPE IMU 2.03 / 1.71, per-frame fit 1.05 / 1.23, fused
+1.05 / 1.33 cm; chamfer (visible surface) fit 1.45 / 1.71, fused 1.54 / 1.79, true body
+1.74 / 2.01 cm; jitter fused / truth 0.99 / 0.95; foot skate in the IMU's contact frames 3.75 mm
+per frame at 5 fps / 0.53 at 15 fps (0.63 / 0.27 at 30 fps).
 """
 
 from __future__ import annotations
