@@ -1,6 +1,8 @@
 """Fitting stage: body fits to point clouds, chair registration, contacts, `couch-process`.
 
-Built so far: :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
+Built so far: :mod:`couch.fitting.session` (:func:`fit_session`: sync, clouds, IMU alignment,
+shape, per-frame fits and fusion of a whole session folder),
+:mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
 :mod:`couch.fitting.body` (per-frame SMPL fits to person clouds, batched over frames),
 :mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan),
 :mod:`couch.fitting.fusion` (Kinect fits + IMU over the sequence, COUCH Eq. 7-8), and their
@@ -18,6 +20,7 @@ from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
 from couch.fitting.limits import joint_limit_penalty
 from couch.fitting.metrics import (
     FOOT_KEYPOINTS,
+    CameraView,
     SurfaceDistances,
     chamfer,
     foot_points,
@@ -28,12 +31,21 @@ from couch.fitting.metrics import (
     sync_error,
 )
 from couch.fitting.params import BodyParams
+from couch.fitting.session import (
+    SessionFit,
+    SessionFitConfig,
+    SessionFitError,
+    WorldAlignment,
+    fit_session,
+)
 from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
 __all__ = [
-    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "FusionConfig", "PaddedClouds",
-    "ShapeFit", "ShapeFitConfig", "SurfaceDistances", "chamfer", "contact_runs",
-    "fit_betas_to_scan", "fit_bodies", "fit_bodies_frame_by_frame", "fit_shape", "foot_points",
+    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "CameraView", "FusionConfig",
+    "PaddedClouds", "SessionFit", "SessionFitConfig", "SessionFitError", "ShapeFit",
+    "ShapeFitConfig", "SurfaceDistances", "WorldAlignment", "chamfer", "contact_runs",
+    "fit_betas_to_scan", "fit_bodies", "fit_bodies_frame_by_frame", "fit_session", "fit_shape",
+    "foot_points",
     "foot_skate", "fuse_motion", "jitter",
     "joint_limit_penalty", "mpjpe", "pad_clouds", "surface_distances", "sync_error",
 ]
