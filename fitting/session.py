@@ -318,16 +318,6 @@ def _fill_gaps(valid: np.ndarray) -> np.ndarray:
     return np.where(rows - left <= right - rows, left, right)
 
 
-def _take(imu: ResampledImu, index: np.ndarray) -> ResampledImu:
-    """A :class:`ResampledImu` of the rows ``index`` (copies)."""
-    fc = None if imu.foot_contacts is None else imu.foot_contacts[index]
-    return ResampledImu(time=imu.time[index], imu_time=imu.imu_time[index],
-                        status=imu.status[index], joint_rotations=imu.joint_rotations[index],
-                        global_orient=imu.global_orient[index], body_pose=imu.body_pose[index],
-                        joint_positions=imu.joint_positions[index], foot_contacts=fc,
-                        source=imu.source)
-
-
 def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud],
               views: Sequence[CameraView], present: np.ndarray,
               occluders: tuple[np.ndarray, np.ndarray] | None, samples: int) -> np.ndarray:
@@ -602,7 +592,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     if filled.any():
         warnings.append(f"IMU: {int(filled.sum())} frame(s) in gaps of the IMU recording take "
                         f"the nearest valid pose")
-    imu = _take(ss.resampled, rows[_fill_gaps(valid[rows])])
+    imu = ss.resampled.take(rows[_fill_gaps(valid[rows])])
 
     t0 = time.perf_counter()
     clouds, views, w = session_clouds(root, ext, ss.kinect, ss.tracks, rows, chair=chair,
@@ -672,7 +662,7 @@ def fit_session(session_dir: str | os.PathLike, *,
             res = resample_imu(ss.imu, clock.clock, ss.kinect.time[rows],
                                source=ss.imu_source or "IMU")
             if res.valid[~filled].all():
-                imu = _take(res, _fill_gaps(res.valid))
+                imu = res.take(_fill_gaps(res.valid))
             else:
                 warnings.append("sync: the refined IMU clock leaves frames outside the IMU "
                                 "recording; kept the head-top clock's resampling")

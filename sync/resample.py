@@ -60,6 +60,17 @@ class ResampledImu:
         """(T,) bool: interpolated between two IMU samples."""
         return self.status == OK
 
+    def take(self, index: np.ndarray) -> ResampledImu:
+        """The targets ``index`` (an index array or boolean mask over the T targets), copied."""
+        fc = None if self.foot_contacts is None else self.foot_contacts[index]
+        return ResampledImu(time=self.time[index], imu_time=self.imu_time[index],
+                            status=self.status[index],
+                            joint_rotations=self.joint_rotations[index],
+                            global_orient=self.global_orient[index],
+                            body_pose=self.body_pose[index],
+                            joint_positions=self.joint_positions[index], foot_contacts=fc,
+                            source=self.source)
+
     def counts(self) -> dict[str, int]:
         """Number of targets per status name."""
         return {name: int(np.count_nonzero(self.status == code))
