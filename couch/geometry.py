@@ -1,4 +1,5 @@
-"""Rigid transforms: building, inverting, applying, fitting and averaging 4x4 poses.
+"""Rigid transforms (building, inverting, applying, fitting and averaging 4x4 poses) and mesh
+surface sampling.
 
 Transforms are ``(..., 4, 4)`` float arrays mapping column vectors of the source frame into the
 target frame (``world_from_object`` maps object coordinates into world coordinates), metres.
@@ -103,3 +104,26 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         # np.add.at over the vertex axis, batched over any leading axes
         np.add.at(vn, (..., faces[:, k], slice(None)), fn)
     return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-12)
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 3)`` area-uniform random points on a triangle mesh and ``(n, 3)`` the unit normals
+    of their faces (winding order: counter-clockwise seen from outside is outward).
+
+    Args:
+        vertices: ``(V, 3)``; faces: ``(F, 3)`` int, at least one with non-zero area.
+        n: number of samples; seed: of the random generator (reproducible samples).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces, dtype=np.int64)]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    if not area.sum() > 0:
+        raise ValueError("sample_surface: the mesh has no area")
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(tri), size=n, p=area / area.sum())
+    r1, r2 = rng.random((2, n, 1))
+    s = np.sqrt(r1)
+    points = (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2]
+    return points, cross[face] / area[face, None]

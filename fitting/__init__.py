@@ -1,7 +1,8 @@
 """Fitting stage: body fits to point clouds, chair registration, contacts, `couch-process`.
 
 Built so far: :mod:`couch.fitting.session` (:func:`fit_session`: sync, clouds, IMU alignment,
-shape, per-frame fits and fusion of a whole session folder),
+shape, per-frame fits and fusion of a whole session folder), :mod:`couch.fitting.chair`
+(:func:`register_session_chair`: the chair scan placed in the world, moved chairs found),
 :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
 :mod:`couch.fitting.body` (per-frame SMPL fits to person clouds, batched over frames),
 :mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan),
@@ -14,6 +15,14 @@ from couch.fitting.body import (
     BodyFitConfig,
     fit_bodies,
     fit_bodies_frame_by_frame,
+)
+from couch.fitting.chair import (
+    ChairConfig,
+    ChairRegistration,
+    ChairRegistrationError,
+    load_scan,
+    register_chair,
+    register_session_chair,
 )
 from couch.fitting.clouds import PaddedClouds, pad_clouds
 from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
@@ -41,11 +50,40 @@ from couch.fitting.session import (
 from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
 __all__ = [
-    "FOOT_KEYPOINTS", "BodyFit", "BodyFitConfig", "BodyParams", "CameraView", "FusionConfig",
-    "PaddedClouds", "SessionFit", "SessionFitConfig", "SessionFitError", "ShapeFit",
-    "ShapeFitConfig", "SurfaceDistances", "WorldAlignment", "chamfer", "contact_runs",
-    "fit_betas_to_scan", "fit_bodies", "fit_bodies_frame_by_frame", "fit_session", "fit_shape",
+    "FOOT_KEYPOINTS",
+    "BodyFit",
+    "BodyFitConfig",
+    "BodyParams",
+    "CameraView",
+    "ChairConfig",
+    "ChairRegistration",
+    "ChairRegistrationError",
+    "FusionConfig",
+    "PaddedClouds",
+    "SessionFit",
+    "SessionFitConfig",
+    "SessionFitError",
+    "ShapeFit",
+    "ShapeFitConfig",
+    "SurfaceDistances",
+    "WorldAlignment",
+    "chamfer",
+    "contact_runs",
+    "fit_betas_to_scan",
+    "fit_bodies",
+    "fit_bodies_frame_by_frame",
+    "fit_session",
+    "fit_shape",
     "foot_points",
-    "foot_skate", "fuse_motion", "jitter",
-    "joint_limit_penalty", "mpjpe", "pad_clouds", "surface_distances", "sync_error",
+    "foot_skate",
+    "fuse_motion",
+    "jitter",
+    "joint_limit_penalty",
+    "load_scan",
+    "mpjpe",
+    "pad_clouds",
+    "register_chair",
+    "register_session_chair",
+    "surface_distances",
+    "sync_error",
 ]

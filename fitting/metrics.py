@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from couch.capture.azure_calibration import CameraIntrinsics
 from couch.capture.registration import project_points
+from couch.geometry import sample_surface
 
 __all__ = [
     "FOOT_KEYPOINTS",
@@ -171,7 +172,7 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
     to_surface = (scene.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
                   if len(pts) else np.zeros(0))
-    sample, normal = _sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
+    sample, normal = sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
     if visible_from is not None:
         if occluders is not None:
             scene.add_triangles(o3d.core.Tensor(np.asarray(occluders[0], np.float32)),
@@ -180,20 +181,6 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
                  else np.full(len(sample), np.nan))
     return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
-
-
-def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, seed: int
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) area-uniform samples of a triangle mesh and (n, 3) their faces' unit normals."""
-    tri = v[f]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(f), size=n, p=area / area.sum())
-    r1, r2 = rng.random((2, n, 1))
-    s = np.sqrt(r1)
-    normal = cross[face] / np.maximum(area[face], 1e-30)[:, None]
-    return (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2], normal
 
 
 def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, normals: np.ndarray,

@@ -1,0 +1,1025 @@
+"""Chair registration: the object's scan mesh placed in the world from the session's depth.
+
+COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
+
+1. **chair clouds** (:func:`chair_clouds`) — the chair stands in every recording of a session,
+   the empty room and the calibration captures included, so background subtraction never shows
+   it as foreground (the segmentation's ``chair`` masks need the registered chair, which is
+   what this module produces). What may be the chair is therefore everything each camera sees
+   *except* the person (the segmentation's person mask, grown by a few pixels), the floor
+   (y <= ``floor_tolerance``) and depth edges (flying pixels), fused over cameras per frame
+   (:func:`couch.capture.pointcloud.fuse_clouds`). The room's clutter stays in; the
+   registration picks the chair out of it by shape.
+2. **global registration** (:func:`global_candidates`) — the frame with the most points is cut
+   into objects (DBSCAN on a coarse copy); every object whose extent fits the scan's is matched
+   against samples of the scan with FPFH features + RANSAC (open3d, seeded through
+   ``o3d.utility.random.seed``, several seeds), each result refined by point-to-plane ICP.
+   RANSAC alone is 5-30 cm off and a symmetric shape (a stool) fits several ways, so every
+   candidate is refined and the best ICP fitness wins; candidates that fit as well with a
+   rotation more than ``ambiguity_deg`` away are reported as an ambiguity.
+3. **per-frame ICP** (:func:`track_frame`) — every frame's points within ``crop_margin`` of the
+   current pose (cloud → scan surface, point-to-plane, Tukey kernel, coarse to fine). A frame
+   is rejected with its reason: too few points (the person in front of the chair), low fitness
+   (share of those points within ``inlier_distance`` of the surface), high RMSE. A frame whose
+   ICP fails but which has points is registered globally again: a chair that moved is found.
+4. **segments and averaging** (:func:`pose_segments`, :func:`average_poses`) — the accepted poses
+   in time order are split where the pose jumps by more than ``move_mm`` / ``move_deg`` and stays
+   (``min_segment_frames`` in a row; a lone jump is an outlier frame), so a chair moved between
+   two static periods gives two segments instead of an average of both. Within a segment: the
+   chordal L2 mean of the rotations (``scipy`` ``Rotation.mean``) and the median translation,
+   iterating with outlier rejection; the spread is the RMS angle / distance of the kept frames.
+5. **chamfer** — the registered mesh against the union of the segment's chair points (those
+   within ``chamfer_margin`` of the mesh), both directions, the mesh side counted where a
+   camera could see it (:func:`couch.fitting.metrics.surface_distances`).
+
+Frames and units: metres; the world of the extrinsics (Y up, floor y = 0); the scan in its own
+frame. ``world_from_object`` is the schema's ``/object/pose``: scan-frame vertices → world
+(the simulator's ``ChairPlacement.world_from_scan``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time as wallclock
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation
+from tqdm.auto import tqdm
+
+from couch.capture.azure_calibration import DEPTH_RANGE_M
+from couch.capture.calibration import Extrinsics
+from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
+from couch.capture.segmentation import (
+    CameraSegmentation,
+    FrameSegmentation,
+    SegmentationConfig,
+    camera_points,
+    depth_edges,
+    empty_room_recording,
+    segment_recording,
+)
+from couch.capture.session import session_files
+from couch.fitting.metrics import CameraView, surface_distances
+from couch.geometry import apply_transform, invert_transform, sample_surface
+from couch.rotations import rotation_angle
+
+__all__ = [
+    "ChairClouds",
+    "ChairConfig",
+    "ChairRegistration",
+    "ChairRegistrationError",
+    "ChairScan",
+    "ChairSegment",
+    "FrameResult",
+    "average_poses",
+    "chair_clouds",
+    "global_candidates",
+    "load_scan",
+    "pose_segments",
+    "register_chair",
+    "register_session_chair",
+    "rotation_angle_deg",
+    "session_scan_path",
+    "track_frame",
+]
+
+
+class ChairRegistrationError(ValueError):
+    """The chair cannot be registered (the message names the file or session and why)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ChairConfig:
+    """Knobs of the chair registration (lengths in metres, angles in degrees).
+
+    Attributes:
+        person_dilate_px: the person mask is grown by this many pixels before its complement
+            may be chair (its rim is mixed depth and half-person).
+        edge_ratio: drop depth-edge pixels (see :func:`~couch.capture.segmentation.
+            depth_edges`) with this ratio; None: keep them. Both sides of every edge is all
+            of a thin leg or stretcher at binned resolution (it took the chair's legs out of
+            the clouds and put 1 cm on the chamfer); the clouds' own plane-fit outlier test
+            (:class:`~couch.capture.pointcloud.CloudConfig`) drops the flying pixels anyway.
+        scan_spacing: mean spacing of the scan's surface samples (ICP target).
+        max_scan_samples: at most this many samples.
+        voxel: voxel of the global registration (FPFH radius 5x, normals from the data).
+        cluster_eps: DBSCAN neighbour distance that cuts a frame into objects.
+        min_extent, max_extent: an object may be the chair when its extent (bounding-box
+            diagonal) is within these fractions of the scan's.
+        ransac_seeds: RANSAC runs (seeds ``seed`` ...) per object.
+        ransac_iterations, ransac_confidence: RANSAC convergence.
+        seed: base seed of the scan sampling and RANSAC.
+        icp_distances: ICP max correspondence distances, coarse to fine.
+        icp_iterations: per stage.
+        crop_margin: a frame's points this near the posed scan are the chair's.
+        inlier_distance: a point this near the surface is explained by the chair.
+        min_points: a frame with fewer chair points is rejected (occluded).
+        min_point_fraction: ... or with fewer than this share of the best frame's count.
+        min_fitness: reject below this share of inliers among the cropped points.
+        max_rmse: reject above this RMS inlier distance.
+        ambiguity_fitness: candidates within this fitness of the best are equally good ...
+        ambiguity_deg: ... and ambiguous when their rotation differs by more than this.
+        move_mm, move_deg: a pose this far from its segment's starts a new segment ...
+        min_segment_frames: ... when this many accepted frames in a row agree (else: outliers).
+        outlier_deg, outlier_mm: floors of the averaging's rejection thresholds (3 robust
+            sigmas otherwise).
+        chamfer_margin: chair points for the chamfer: this near the registered mesh.
+        seen_tolerance: a surface point up to this far behind the farthest depth a camera
+            measured at its pixel counts as seen by it (depth noise).
+        chamfer_voxel: the union of a segment's points is downsampled to this.
+        chamfer_samples: surface samples of the mesh → points direction.
+    """
+
+    person_dilate_px: int = 3
+    edge_ratio: float | None = None
+    floor_tolerance: float = 0.02
+    scan_spacing: float = 0.005
+    max_scan_samples: int = 60000
+    voxel: float = 0.02
+    cluster_eps: float = 0.05
+    min_extent: float = 0.3
+    max_extent: float = 1.3
+    ransac_seeds: int = 4
+    ransac_iterations: int = 100000
+    ransac_confidence: float = 0.999
+    seed: int = 0
+    icp_distances: tuple[float, ...] = (0.05, 0.02, 0.008)
+    icp_iterations: int = 30
+    crop_margin: float = 0.05
+    inlier_distance: float = 0.008
+    min_points: int = 300
+    min_point_fraction: float = 0.4
+    min_fitness: float = 0.7
+    max_rmse: float = 0.005
+    ambiguity_fitness: float = 0.02
+    ambiguity_deg: float = 5.0
+    move_mm: float = 30.0
+    move_deg: float = 3.0
+    min_segment_frames: int = 2
+    outlier_deg: float = 0.5
+    outlier_mm: float = 5.0
+    chamfer_margin: float = 0.03
+    seen_tolerance: float = 0.02
+    chamfer_voxel: float = 0.005
+    chamfer_samples: int = 8000
+
+
+# --------------------------------------------------------------------------- the scan
+
+
+@dataclasses.dataclass
+class ChairScan:
+    """The object's scan mesh (its own frame, metres) and what the registration uses of it.
+
+    Attributes:
+        path: the file (for messages), or None.
+        vertices: (V,3) float64; faces: (F,3) int64.
+        samples: (S,3) float64 area-uniform surface samples; normals: (S,3) their faces' unit
+            normals.
+        extent: bounding-box diagonal (m).
+    """
+
+    path: Path | None
+    vertices: np.ndarray
+    faces: np.ndarray
+    samples: np.ndarray
+    normals: np.ndarray
+    extent: float
+
+    @property
+    def name(self) -> str:
+        return str(self.path) if self.path is not None else "the chair scan"
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) area centroid of the surface, scan frame (on every symmetry axis, unlike the
+        bounding box's centre in the scan's arbitrary frame)."""
+        return self.samples.mean(0)
+
+    @property
+    def radius(self) -> float:
+        """Largest distance (m) of a vertex from :attr:`centre`."""
+        return float(np.linalg.norm(self.vertices - self.centre, axis=1).max())
+
+    def scene(self) -> o3d.t.geometry.RaycastingScene:
+        """A ray-casting scene of the mesh (scan frame) for exact point-to-surface distances."""
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                            o3d.core.Tensor(self.faces.astype(np.uint32)))
+        return scene
+
+    def target(self) -> o3d.geometry.PointCloud:
+        """The samples with normals as an open3d cloud (the ICP target, scan frame)."""
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.samples))
+        pcd.normals = o3d.utility.Vector3dVector(self.normals)
+        return pcd
+
+
+def _watertight(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Every edge shared by exactly two faces, with coincident vertices merged (OBJ writers
+    split vertices per part or per normal)."""
+    _, ids = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
+    f = ids.reshape(-1)[faces]
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    if not len(edges):
+        return False
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def load_scan(source: str | os.PathLike | tuple[np.ndarray, np.ndarray],
+              config: ChairConfig | None = None, *, require_watertight: bool = True
+              ) -> ChairScan:
+    """Read and check the chair's scan mesh (OBJ/PLY, or (vertices, faces) arrays).
+
+    Raises:
+        ChairRegistrationError: missing or unreadable file, no triangles, non-finite vertices,
+            degenerate (zero area), not watertight (with ``require_watertight``), or a size no
+            chair has in metres (over 5 m across: millimetres or centimetres, probably; under
+            5 cm). The message names the file.
+    """
+    cfg = config or ChairConfig()
+    if isinstance(source, tuple):
+        path, (v, f) = None, source
+        name = "the chair scan"
+    else:
+        path = Path(source)
+        name = str(path)
+        if not path.is_file():
+            raise ChairRegistrationError(f"{path}: no such chair scan file")
+        if path.suffix.lower() not in (".obj", ".ply", ".stl", ".off"):
+            raise ChairRegistrationError(f"{path}: a chair scan must be .obj/.ply/.stl/.off")
+        # open3d reports a bad file on stderr and returns an empty mesh: checked below
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            mesh = o3d.io.read_triangle_mesh(str(path))
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    v = np.asarray(v, dtype=np.float64)
+    f = np.asarray(f, dtype=np.int64)
+    if v.ndim != 2 or v.shape[1:] != (3,) or f.ndim != 2 or f.shape[1:] != (3,):
+        raise ChairRegistrationError(f"{name}: expected vertices (V,3) and faces (F,3), got "
+                                     f"{v.shape} and {f.shape}")
+    if not len(v) or not len(f):
+        raise ChairRegistrationError(f"{name}: the chair scan is empty ({len(v)} vertices, "
+                                     f"{len(f)} triangles)")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ChairRegistrationError(f"{name}: face indices out of range 0..{len(v) - 1}")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise ChairRegistrationError(f"{name}: {int(bad.sum())} of {len(v)} vertices are NaN or "
+                                     f"infinite (first: vertex {int(np.flatnonzero(bad)[0])})")
+    extent = float(np.linalg.norm(v.max(0) - v.min(0)))
+    if extent > 5.0:
+        raise ChairRegistrationError(
+            f"{name}: the chair scan is {extent:.4g} units across; the scan must be in metres "
+            f"and no chair is over 5 m (in millimetres it would be {extent / 1000:.3g} m, in "
+            f"centimetres {extent / 100:.3g} m)")
+    if extent < 0.05:
+        raise ChairRegistrationError(f"{name}: the chair scan is only {extent:.4g} m across; the "
+                                     f"scan must be in metres (wrong units?)")
+    if require_watertight and not _watertight(v, f):
+        raise ChairRegistrationError(f"{name}: the chair scan is not watertight (some edges are "
+                                     f"not shared by exactly two triangles: holes or a "
+                                     f"non-manifold surface); repair it (e.g. pymeshlab "
+                                     f"generate_alpha_wrap) first")
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
+                                axis=1)
+    keep = area > 1e-12
+    if not keep.any():
+        raise ChairRegistrationError(f"{name}: every triangle of the chair scan has zero area")
+    n = int(min(cfg.max_scan_samples, max(2000, area.sum() / cfg.scan_spacing ** 2)))
+    samples, normals = sample_surface(v, f[keep], n, cfg.seed)
+    return ChairScan(path, v, f, samples, normals, extent)
+
+
+def session_scan_path(session_dir: str | os.PathLike) -> Path:
+    """The session's chair scan: ``session.json``'s ``chair_scan`` entry, else
+    ``chair_scan.obj`` beside it."""
+    root = Path(session_dir)
+    manifest = root / "session.json"
+    if manifest.is_file():
+        try:
+            entry = json.loads(manifest.read_text()).get("chair_scan")
+        except (json.JSONDecodeError, AttributeError) as e:
+            raise ChairRegistrationError(f"{manifest}: not a JSON object ({e})") from None
+        if entry:
+            return root / entry
+    return root / "chair_scan.obj"
+
+
+# --------------------------------------------------------------------------- chair clouds
+
+
+@dataclasses.dataclass
+class ChairClouds:
+    """What may be the chair in frames of a session (everything but the person and the floor).
+
+    Attributes:
+        session: the session folder.
+        frames: (T,) int rows of the frame table (with a ``KinectSync``), else the index of
+            each camera's usable frame.
+        time: (T,) float64 seconds (Kinect master clock with a ``KinectSync``, else the first
+            camera's device clock).
+        clouds: T fused clouds (world).
+        views: the C depth cameras (world), their ``background`` the farthest depth each pixel
+            measured over these frames (the chair is part of the room's background, so the
+            empty room cannot serve) and ``margin`` ``-seen_tolerance``: a chair surface point
+            counts as seen when some frame measured no nearer than it (:func:`register_chair`'s
+            chamfer).
+        warnings: skipped captures per camera.
+    """
+
+    session: Path
+    frames: np.ndarray
+    time: np.ndarray
+    clouds: list[FusedCloud]
+    views: list[CameraView]
+    warnings: list[str]
+
+
+def scene_mask(frame: FrameSegmentation, segmentation: CameraSegmentation,
+               config: ChairConfig | None = None) -> np.ndarray:
+    """(H,W) bool: depth pixels of one frame that may be the chair — valid depth, not the
+    (grown) person, above the floor (world y > ``floor_tolerance``), optionally not a depth
+    edge (``edge_ratio``)."""
+    cfg = config or ChairConfig()
+    depth = frame.depth_mm
+    k = 2 * cfg.person_dilate_px + 1
+    person = cv2.dilate(frame.person.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    mask = (depth > 0) & ~person
+    if cfg.edge_ratio is not None:
+        mask &= ~depth_edges(depth, cfg.edge_ratio)
+    pts = camera_points(depth, segmentation.calibration)
+    pose = segmentation.world_from_depth
+    with np.errstate(invalid="ignore"):
+        height = pts @ pose[1, :3].astype(np.float32) + np.float32(pose[1, 3])
+        mask &= height > cfg.floor_tolerance  # NaN (invalid) compares False
+    return mask
+
+
+def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[str, np.ndarray],
+                 *, frames: Sequence[int] | np.ndarray | None = None, step: int = 1,
+                 kinect: object | None = None, tracks: Sequence[object] | None = None,
+                 config: ChairConfig | None = None,
+                 segmentation: SegmentationConfig | None = None,
+                 cloud: CloudConfig | None = None, progress: bool = False) -> ChairClouds:
+    """Clouds of what may be the chair, per frame (see the module doc, step 1).
+
+    Mirrors :func:`couch.fitting.session.session_clouds`: every camera's recording is
+    segmented once (background from its empty-room recording when there is one, else its
+    calibration capture and its own frames) and each frame's masks fused over cameras.
+
+    Args:
+        session_dir: the session.
+        extrinsics: camera poses (:class:`Extrinsics` or serial → (4,4) world_from_depth).
+        frames: which frames (rows of ``kinect.frame_table``, or per-camera frame indices);
+            None: every ``step``-th.
+        step: see ``frames``.
+        kinect, tracks: ``SessionSync.kinect`` / ``.tracks`` to fuse frames by the master
+            clock's rows; None: the k-th usable frame of every camera forms frame k (the chair
+            is static and the person is removed per camera, so the cameras' time offsets
+            matter only for ``time``).
+        config: the chair stage's knobs (person growth, floor height).
+        segmentation, cloud: capture-stage configs.
+        progress: progress bars.
+
+    Raises:
+        ChairRegistrationError: no camera has a recording or extrinsics.
+    """
+    files = session_files(session_dir)
+    cfg = config or ChairConfig()
+    seg_cfg = segmentation or SegmentationConfig()
+    serials = (list(kinect.serials) if kinect is not None  # type: ignore[attr-defined]
+               else [c.serial for c in files.cameras if c.recording is not None])
+    if not serials:
+        raise ChairRegistrationError(f"{files.root}: the session has no camera recordings")
+    segs: list[CameraSegmentation] = []
+    warnings: list[str] = []
+    for serial in tqdm(serials, desc="chair segmentation", unit="camera", disable=not progress):
+        cam = files.camera(serial)
+        if cam is None or cam.recording is None:
+            raise ChairRegistrationError(f"{files.root}: no recording for camera {serial}")
+        try:
+            pose = (extrinsics.world_from_depth(serial) if isinstance(extrinsics, Extrinsics)
+                    else np.asarray(extrinsics[serial], np.float64))
+        except KeyError:
+            raise ChairRegistrationError(f"{files.root}: no extrinsics for camera "
+                                         f"{serial}") from None
+        seg = segment_recording(cam.recording, pose,
+                                empty_room=empty_room_recording(files.root, serial),
+                                background_paths=[p for p in (cam.calibration_capture,)
+                                                  if p is not None], config=seg_cfg)
+        if seg.skipped:
+            warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
+                            f"depth skipped")
+        segs.append(seg)
+    if kinect is not None:
+        stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
+        by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
+        table = kinect.frame_table  # type: ignore[attr-defined]
+        count = len(table)
+    else:
+        count = min(len(s.frames) for s in segs)
+    sel = np.arange(0, count, max(1, int(step))) if frames is None else np.asarray(frames, int)
+    clouds, times = [], []
+    # per camera the farthest depth it measured in any of these frames: a surface point up to
+    # ``seen_tolerance`` behind it was in view at least once (not always behind the person)
+    far = [np.zeros(s.background.depth.shape, np.uint16) for s in segs]
+    for r in tqdm(sel, desc="chair clouds", unit="frame", disable=not progress):
+        depths, masks = [], []
+        for c, seg in enumerate(segs):
+            if kinect is not None:
+                k = int(table[r, c])
+                f = (stamps[c].get(int(by_serial[serials[c]][k])) if k >= 0 else None)
+            else:
+                f = seg.frames[int(r)]
+            depths.append(None if f is None else f.depth_mm)
+            masks.append(None if f is None else scene_mask(f, seg, cfg))
+            if f is not None:
+                np.maximum(far[c], f.depth_mm, out=far[c])
+        t = (float(kinect.time[r]) if kinect is not None  # type: ignore[attr-defined]
+             else segs[0].frames[int(r)].timestamp_us * 1e-6)
+        times.append(t)
+        clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs],
+                                  [s.world_from_depth for s in segs], time=t, config=cloud))
+    # CameraView hides points behind its background by more than -margin: here the farthest
+    # measurement (0 where never valid: never seen), so a chair surface the person covered in
+    # every frame does not count as missed
+    views = [CameraView(s.world_from_depth, s.calibration.depth,
+                        fd.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
+                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
+                        max_incidence_deg=80.0) for s, fd in zip(segs, far, strict=True)]
+    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings)
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle(s) (degrees) of the rotation between the (...,3,3) rotation parts of ``a`` and
+    ``b`` (4x4 or 3x3)."""
+    ra, rb = np.asarray(a)[..., :3, :3], np.asarray(b)[..., :3, :3]
+    return np.degrees(rotation_angle(np.swapaxes(ra, -1, -2) @ rb))
+
+
+@dataclasses.dataclass
+class FrameResult:
+    """One frame's registration.
+
+    Attributes:
+        pose: (4,4) world_from_object (scan → world), or None when ICP could not run.
+        fitness: share of the cropped points within ``inlier_distance`` of the surface.
+        rmse: RMS distance (m) of those inliers.
+        points: points cropped (within ``crop_margin`` of the posed scan).
+        method: ``track`` (ICP from the previous pose) or ``global`` (re-detected).
+    """
+
+    pose: np.ndarray | None
+    fitness: float
+    rmse: float
+    points: int
+    method: str = "track"
+
+
+def _evaluate(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.RaycastingScene,
+              world_from_object: np.ndarray, margin: float, inlier: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool points within ``margin`` of the posed scan and (M,) their exact distances
+    (m) to its surface. A bounding-sphere test first spares the ray-casting most of the room."""
+    local = apply_transform(invert_transform(world_from_object), points)
+    radius = scan.radius + margin
+    near = np.linalg.norm(local - scan.centre, axis=1) < radius
+    d = np.full(len(points), np.inf)
+    if near.any():
+        d[near] = scene.compute_distance(
+            o3d.core.Tensor(local[near].astype(np.float32))).numpy()
+    crop = d < margin
+    return crop, d[crop]
+
+
+def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
+                config: ChairConfig | None = None,
+                scene: o3d.t.geometry.RaycastingScene | None = None,
+                target: o3d.geometry.PointCloud | None = None) -> FrameResult:
+    """Point-to-plane ICP of one frame's chair points onto the scan, from pose ``init``.
+
+    The frame's points near the posed scan (``crop_margin``, re-cropped at every stage) go to
+    the scan's samples (their normals), with a Tukey kernel at each stage's distance so that a
+    hand on the armrest or a crumb of the person does not pull.
+
+    Args:
+        cloud: the frame (world). scan: the chair. init: (4,4) world_from_object to start at.
+        scene, target: ``scan.scene()`` / ``scan.target()`` when the caller has them.
+
+    Returns:
+        :class:`FrameResult` (``pose`` None when too few points were near).
+    """
+    cfg = config or ChairConfig()
+    scene = scene or scan.scene()
+    target = target or scan.target()
+    pts = np.asarray(cloud.points, np.float64)
+    pose = np.asarray(init, np.float64)
+    margin = max(cfg.crop_margin, cfg.icp_distances[0])
+    for dist in cfg.icp_distances:
+        crop, _ = _evaluate(pts, scan, scene, pose, margin, cfg.inlier_distance)
+        if crop.sum() < max(cfg.min_points // 3, 10):
+            return FrameResult(None, 0.0, np.inf, int(crop.sum()))
+        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[crop]))
+        est = o3d.pipelines.registration.TransformationEstimationPointToPlane(
+            o3d.pipelines.registration.TukeyLoss(k=dist))
+        res = o3d.pipelines.registration.registration_icp(
+            source, target, dist, invert_transform(pose), est,
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations))
+        pose = invert_transform(np.asarray(res.transformation))
+        margin = max(cfg.crop_margin, dist)
+    crop, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin, cfg.inlier_distance)
+    n = int(crop.sum())
+    inl = d < cfg.inlier_distance
+    fitness = float(inl.mean()) if n else 0.0
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
+    return FrameResult(pose, fitness, rmse, n)
+
+
+def _objects(cloud: FusedCloud, scan: ChairScan, cfg: ChairConfig
+             ) -> tuple[list[np.ndarray], float]:
+    """Index arrays of the objects of a frame whose extent may be the chair's, and the largest
+    object's extent (m) for messages."""
+    pcd = cloud.to_open3d()
+    if not len(pcd.points):
+        return [], 0.0
+    pts = np.asarray(pcd.points)
+    # cluster a coarse copy, then give every point its voxel's label
+    coarse, _, members = pcd.voxel_down_sample_and_trace(
+        cfg.voxel / 2, pts.min(0) - 1e-3, pts.max(0) + 1e-3)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        labels = np.asarray(coarse.cluster_dbscan(cfg.cluster_eps, min_points=3))
+    point_label = np.full(len(pts), -1)
+    for lab, idx in zip(labels, members, strict=True):
+        point_label[np.asarray(idx)] = lab
+    out, largest = [], 0.0
+    for lab in range(labels.max() + 1 if len(labels) else 0):
+        idx = np.flatnonzero(point_label == lab)
+        if len(idx) < cfg.min_points:
+            continue
+        ext = float(np.linalg.norm(pts[idx].max(0) - pts[idx].min(0)))
+        largest = max(largest, ext)
+        if cfg.min_extent * scan.extent <= ext <= cfg.max_extent * scan.extent:
+            out.append(idx)
+    return out, largest
+
+
+def _fpfh(pcd: o3d.geometry.PointCloud, voxel: float
+          ) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
+    down = pcd.voxel_down_sample(voxel)
+    if not down.has_normals():
+        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    feat = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+    return down, feat
+
+
+def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | None = None,
+                      scene: o3d.t.geometry.RaycastingScene | None = None,
+                      target: o3d.geometry.PointCloud | None = None
+                      ) -> tuple[list[FrameResult], float]:
+    """Global registrations of the scan in one frame, best first (see the module doc, step 2).
+
+    Returns:
+        (candidates refined by ICP, sorted by fitness then RMSE; the extent (m) of the largest
+        object in the frame, for messages).
+    """
+    cfg = config or ChairConfig()
+    scene = scene or scan.scene()
+    target = target or scan.target()
+    objects, largest = _objects(cloud, scan, cfg)
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.samples))
+    src.normals = o3d.utility.Vector3dVector(scan.normals)
+    src_down, src_feat = _fpfh(src, cfg.voxel)
+    reg = o3d.pipelines.registration
+    found: list[FrameResult] = []
+    for idx in objects:
+        part = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+            cloud.points[idx].astype(np.float64)))
+        part.normals = o3d.utility.Vector3dVector(cloud.normals[idx].astype(np.float64))
+        tgt_down, tgt_feat = _fpfh(part, cfg.voxel)
+        if len(tgt_down.points) < 10:
+            continue
+        for k in range(cfg.ransac_seeds):
+            # open3d's RANSAC draws from its own global generator: seed it per run
+            o3d.utility.random.seed(cfg.seed + k)
+            res = reg.registration_ransac_based_on_feature_matching(
+                src_down, tgt_down, src_feat, tgt_feat, False, 1.5 * cfg.voxel,
+                reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                 reg.CorrespondenceCheckerBasedOnDistance(1.5 * cfg.voxel)],
+                reg.RANSACConvergenceCriteria(cfg.ransac_iterations, cfg.ransac_confidence))
+            if res.fitness <= 0:
+                continue
+            r = track_frame(cloud, scan, np.asarray(res.transformation), cfg, scene, target)
+            if r.pose is not None:
+                found.append(dataclasses.replace(r, method="global"))
+    found.sort(key=lambda r: (-round(r.fitness, 3), r.rmse))
+    return found, largest
+
+
+def _turned(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairConfig,
+            scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud
+            ) -> list[FrameResult]:
+    """ICP from ``start`` turned about each principal axis of the scan (through its centre)
+    by the first turns of 2-, 3-, 4- and 5-fold symmetries."""
+    if start.pose is None:
+        return []
+    c = scan.centre
+    _, axes = np.linalg.eigh(np.cov((scan.samples - c).T))
+    out = []
+    for axis in axes.T:
+        for deg in (72, 90, 120, 180):
+            rot = Rotation.from_rotvec(np.radians(deg) * axis).as_matrix()
+            turn = np.eye(4)
+            turn[:3, :3], turn[:3, 3] = rot, c - rot @ c
+            r = track_frame(cloud, scan, start.pose @ turn, cfg, scene, target)
+            if r.pose is not None:
+                out.append(dataclasses.replace(r, method="global"))
+    return out
+
+
+def _good(r: FrameResult, cfg: ChairConfig) -> bool:
+    return (r.pose is not None and r.points >= cfg.min_points and r.fitness >= cfg.min_fitness
+            and r.rmse <= cfg.max_rmse)
+
+
+def _close(a: np.ndarray, b: np.ndarray, cfg: ChairConfig, centre: np.ndarray) -> bool:
+    """Poses within the move thresholds, the translation measured at the object's centre (a
+    rotation about a far origin is not a move of the chair)."""
+    ca, cb = apply_transform(a, centre[None])[0], apply_transform(b, centre[None])[0]
+    return bool(np.linalg.norm(ca - cb) * 1e3 <= cfg.move_mm
+                and rotation_angle_deg(a, b) <= cfg.move_deg)
+
+
+def average_poses(poses: np.ndarray, config: ChairConfig | None = None,
+                  centre: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Robust average of (N,4,4) rigid poses of a static object.
+
+    Rotation: chordal L2 mean (``Rotation.mean``); translation: the median; frames farther than
+    max(floor, 3 robust sigmas) from the average in angle or in the object's ``centre`` (3,)
+    (object frame; default the origin) are dropped and the average is taken again, until
+    nothing changes.
+
+    Returns:
+        (pose (4,4); kept (N,) bool; rotation spread: RMS angle (deg) of the kept poses from
+        the mean; translation spread: RMS distance (mm) of their centres from the average's).
+    """
+    cfg = config or ChairConfig()
+    p = np.asarray(poses, np.float64)
+    c = np.zeros(3) if centre is None else np.asarray(centre, np.float64)
+    rots = Rotation.from_matrix(p[:, :3, :3])
+    keep = np.ones(len(p), bool)
+    for _ in range(10):
+        mean = rots[keep].mean()
+        t = np.median(p[keep, :3, 3], axis=0)
+        avg = np.eye(4)
+        avg[:3, :3], avg[:3, 3] = mean.as_matrix(), t
+        ang = np.degrees((mean.inv() * rots).magnitude())
+        # each frame's object centre against the average's
+        pc = np.einsum("nij,j->ni", p[:, :3, :3], c) + p[:, :3, 3]
+        dist = np.linalg.norm(pc - (avg[:3, :3] @ c + t), axis=1) * 1e3
+        thr_r = max(cfg.outlier_deg, 3 * 1.4826 * np.median(ang[keep]))
+        thr_t = max(cfg.outlier_mm, 3 * 1.4826 * np.median(dist[keep]))
+        new = (ang <= thr_r) & (dist <= thr_t)
+        if not new.any() or np.array_equal(new, keep):
+            break
+        keep = new
+    spread_r = float(np.sqrt(np.mean(ang[keep] ** 2)))
+    spread_t = float(np.sqrt(np.mean(dist[keep] ** 2)))
+    return avg, keep, spread_r, spread_t
+
+
+def pose_segments(poses: np.ndarray, config: ChairConfig | None = None,
+                  centre: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
+    """Split a time-ordered sequence of (N,4,4) poses into static periods.
+
+    A pose joins the current segment when it is within ``move_mm`` / ``move_deg`` of the
+    segment's first pose; otherwise, when it and the next ``min_segment_frames - 1`` poses agree
+    with each other, a new segment starts there; otherwise it is an outlier.
+
+    Returns:
+        (label (N,) int: segment index, -1 for outliers; the outliers' indices).
+    """
+    cfg = config or ChairConfig()
+    p = np.asarray(poses, np.float64)
+    c = np.zeros(3) if centre is None else np.asarray(centre, np.float64)
+    labels = np.full(len(p), -1)
+    ref: np.ndarray | None = None
+    seg = -1
+    for i in range(len(p)):
+        if ref is not None and _close(p[i], ref, cfg, c):
+            labels[i] = seg
+            continue
+        run = p[i:i + cfg.min_segment_frames]
+        if len(run) >= cfg.min_segment_frames and all(_close(q, p[i], cfg, c) for q in run):
+            seg += 1
+            ref = p[i]
+            labels[i] = seg
+        elif ref is None and len(run) < cfg.min_segment_frames:
+            # too short a sequence to confirm anything: the first pose starts the only segment
+            seg, ref, labels[i] = 0, p[i], 0
+    return labels, [int(i) for i in np.flatnonzero(labels < 0)]
+
+
+@dataclasses.dataclass
+class ChairSegment:
+    """A static period of the chair.
+
+    Attributes:
+        first, last: positions (into the registration's frames) of its first and last accepted
+            frame; start_time, end_time: their times (s).
+        world_from_object: (4,4) the robust average.
+        frames: positions of the frames averaged (outliers of the averaging left out).
+        rotation_spread_deg, translation_spread_mm: see :func:`average_poses`.
+        chamfer: metres, symmetric chamfer of the posed mesh to the segment's chair points.
+        chamfer_to_surface, chamfer_to_points: its two directions' means (m).
+    """
+
+    first: int
+    last: int
+    start_time: float
+    end_time: float
+    world_from_object: np.ndarray
+    frames: np.ndarray
+    rotation_spread_deg: float
+    translation_spread_mm: float
+    chamfer: float = np.nan
+    chamfer_to_surface: float = np.nan
+    chamfer_to_points: float = np.nan
+
+
+@dataclasses.dataclass
+class ChairRegistration:
+    """The chair in the session's world. T = frames registered.
+
+    Attributes:
+        scan: the scan file (or None).
+        vertices, faces: the scan mesh (its own frame; the schema's /object/vertices, faces).
+        world_from_object: (4,4) the schema's /object/pose (scan → world): the longest
+            segment's average.
+        frames: (T,) the frames (as in :class:`ChairClouds`); time: (T,) s.
+        frame_poses: (T,4,4) per-frame ICP estimates (the schema's /object/frame_poses; NaN
+            where the frame was rejected).
+        fitness, rmse, points: (T,) per frame (see :class:`FrameResult`).
+        method: (T,) ``track``/``global``/``""`` per frame.
+        used: (T,) bool frames that entered an average.
+        rejected: (position, reason) of each frame left out.
+        segments: the static periods (one unless the chair moved).
+        rotation_spread_deg, translation_spread_mm, chamfer: of the main segment.
+        ambiguous: other poses fit about as well (a symmetric chair); ambiguity_deg: their
+            rotation from the chosen one (deg).
+        seconds: wall time per step.
+        warnings: what may be wrong.
+    """
+
+    scan: Path | None
+    vertices: np.ndarray
+    faces: np.ndarray
+    world_from_object: np.ndarray
+    frames: np.ndarray
+    time: np.ndarray
+    frame_poses: np.ndarray
+    fitness: np.ndarray
+    rmse: np.ndarray
+    points: np.ndarray
+    method: list[str]
+    used: np.ndarray
+    rejected: list[tuple[int, str]]
+    segments: list[ChairSegment]
+    rotation_spread_deg: float
+    translation_spread_mm: float
+    chamfer: float
+    ambiguous: bool
+    ambiguity_deg: list[float]
+    seconds: dict[str, float]
+    warnings: list[str]
+
+    @property
+    def moved(self) -> bool:
+        """The chair stood in more than one place."""
+        return len(self.segments) > 1
+
+    @property
+    def world_vertices(self) -> np.ndarray:
+        """(V,3) the scan mesh in the world."""
+        return apply_transform(self.world_from_object, self.vertices)
+
+    def summary(self) -> str:
+        """A few lines: where the chair is and how sure."""
+        lines = [f"chair {self.scan}: {int(self.used.sum())}/{len(self.frames)} frames used, "
+                 f"{len(self.segments)} segment(s); spread {self.rotation_spread_deg:.3f} deg, "
+                 f"{self.translation_spread_mm:.2f} mm; chamfer {self.chamfer * 100:.3f} cm; "
+                 f"mean fitness {np.nanmean(self.fitness):.3f}, rmse "
+                 f"{np.nanmean(np.where(np.isfinite(self.rmse), self.rmse, np.nan)) * 1e3:.2f} mm"]
+        for s in self.segments:
+            lines.append(f"  segment {s.start_time:.2f}-{s.end_time:.2f} s: {len(s.frames)} "
+                         f"frames, spread {s.rotation_spread_deg:.3f} deg / "
+                         f"{s.translation_spread_mm:.2f} mm, chamfer {s.chamfer * 100:.3f} cm")
+        reasons: dict[str, int] = {}
+        for _, why in self.rejected:
+            key = why.split(":")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        if reasons:
+            lines.append("  rejected: " + ", ".join(f"{v} {k}" for k, v in reasons.items()))
+        lines.append("  time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()))
+        lines += [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Sequence[FusedCloud],
+                   *, views: Sequence[CameraView] | None = None,
+                   config: ChairConfig | None = None, progress: bool = False
+                   ) -> ChairRegistration:
+    """Register the chair's scan in every frame, find its static periods and average them.
+
+    Args:
+        scan: the scan (:func:`load_scan`) or its file.
+        clouds: :func:`chair_clouds` output, or T clouds (world) in time order.
+        views: the depth cameras, for the chamfer's visibility (default: ``clouds.views``;
+            None: every mesh sample counts, an overestimate).
+        config: see :class:`ChairConfig`.
+        progress: progress bar over frames.
+
+    Raises:
+        ChairRegistrationError: a bad scan (see :func:`load_scan`), no points, no object of the
+            scan's size in the points (wrong units?), or no frame in which it fits.
+    """
+    cfg = config or ChairConfig()
+    sec: dict[str, float] = {}
+    t0 = wallclock.perf_counter()
+    if not isinstance(scan, ChairScan):
+        scan = load_scan(scan, cfg)
+    if isinstance(clouds, ChairClouds):
+        views = clouds.views if views is None else views
+        frames, times, cl = clouds.frames, clouds.time, list(clouds.clouds)
+        where = str(clouds.session)
+    else:
+        cl = list(clouds)
+        frames, times = np.arange(len(cl)), np.array([c.time for c in cl], np.float64)
+        where = "the clouds"
+    n = len(cl)
+    counts = np.array([len(c) for c in cl])
+    if not n or not counts.any():
+        raise ChairRegistrationError(f"{where}: no points that could be the chair in any frame")
+    scene, target = scan.scene(), scan.target()
+    sec["scan"] = wallclock.perf_counter() - t0
+
+    # global registration on the frame that sees the most
+    t0 = wallclock.perf_counter()
+    best = int(np.argmax(counts))
+    cands, largest = global_candidates(cl[best], scan, cfg, scene, target)
+    if not cands:
+        raise ChairRegistrationError(
+            f"{scan.name}: no object in {where} (frame {int(frames[best])}) has the scan's size "
+            f"({scan.extent:.3g} m across) and matches it (the largest object there is "
+            f"{largest:.3g} m across): is the scan in metres and of this chair?")
+    # a symmetric chair (a stool) fits turned about one of its axes as well, and RANSAC's
+    # runs need not find those turns: try them from the best candidate, keep the best ICP
+    cands = sorted(cands + _turned(cl[best], scan, cands[0], cfg, scene, target),
+                   key=lambda r: (-round(r.fitness, 3), r.rmse))
+    top = cands[0]
+    if not _good(top, cfg):
+        raise ChairRegistrationError(
+            f"{scan.name}: the scan does not fit the points of {where} (frame "
+            f"{int(frames[best])}: best fitness {top.fitness:.2f}, rmse {top.rmse * 1e3:.1f} mm, "
+            f"{top.points} points): is the scan of this chair and in metres?")
+    # candidates as good as the best but turned: a symmetric chair
+    ambiguity = sorted({round(float(rotation_angle_deg(c.pose, top.pose)), 1) for c in cands[1:]
+                        if c.fitness >= top.fitness - cfg.ambiguity_fitness and _good(c, cfg)
+                        and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg})
+    sec["global"] = wallclock.perf_counter() - t0
+
+    # per-frame ICP from the previous accepted pose; re-detect where it fails
+    t0 = wallclock.perf_counter()
+    results: list[FrameResult] = []
+    pose = top.pose
+    for i in tqdm(range(n), desc="chair ICP", unit="frame", disable=not progress):
+        r = track_frame(cl[i], scan, pose, cfg, scene, target)
+        if not _good(r, cfg) and counts[i] >= cfg.min_points and i != best:
+            again, _ = global_candidates(cl[i], scan, cfg, scene, target)
+            if again and _good(again[0], cfg) and again[0].fitness > r.fitness:
+                r = again[0]
+        if i == best and not _good(r, cfg):
+            r = top
+        if _good(r, cfg):
+            pose = r.pose
+        results.append(r)
+    sec["icp"] = wallclock.perf_counter() - t0
+
+    # rejection, segments, averages
+    t0 = wallclock.perf_counter()
+    pts = np.array([r.points for r in results])
+    fit = np.array([r.fitness for r in results])
+    rmse = np.array([r.rmse for r in results])
+    enough = max(cfg.min_points, cfg.min_point_fraction * pts.max())
+    rejected: list[tuple[int, str]] = []
+    ok = np.zeros(n, bool)
+    for i, r in enumerate(results):
+        if r.pose is None or r.points < enough:
+            rejected.append((i, f"too few points: {r.points} near the chair (need "
+                                f"{enough:.0f}; occluded?)"))
+        elif r.fitness < cfg.min_fitness:
+            rejected.append((i, f"low fitness: {r.fitness:.2f} < {cfg.min_fitness}"))
+        elif r.rmse > cfg.max_rmse:
+            rejected.append((i, f"high rmse: {r.rmse * 1e3:.1f} mm > {cfg.max_rmse * 1e3:.1f}"))
+        else:
+            ok[i] = True
+    if not ok.any():
+        raise ChairRegistrationError(f"{scan.name}: the chair fits no frame of {where} well "
+                                     f"enough ({len(rejected)} frames rejected, first: "
+                                     f"{rejected[0][1]})")
+    frame_poses = np.full((n, 4, 4), np.nan)
+    for i in np.flatnonzero(ok):
+        frame_poses[i] = results[i].pose
+    idx = np.flatnonzero(ok)
+    labels, outliers = pose_segments(frame_poses[idx], cfg, scan.centre)
+    for j in outliers:
+        rejected.append((int(idx[j]), "pose outlier: the pose jumped for this frame only"))
+    used = np.zeros(n, bool)
+    segments: list[ChairSegment] = []
+    for s in range(labels.max() + 1):
+        members = idx[labels == s]
+        avg, keep, sr, st = average_poses(frame_poses[members], cfg, scan.centre)
+        for i in members[~keep]:
+            rejected.append((int(i), "averaging outlier: far from the segment's mean pose"))
+        used[members[keep]] = True
+        segments.append(ChairSegment(int(members[0]), int(members[-1]),
+                                     float(times[members[0]]), float(times[members[-1]]), avg,
+                                     members[keep], sr, st))
+    rejected.sort()
+    sec["average"] = wallclock.perf_counter() - t0
+
+    # chamfer per segment on the union of its frames' chair points
+    t0 = wallclock.perf_counter()
+    for s in segments:
+        union = np.concatenate([np.asarray(cl[i].points, np.float64) for i in s.frames])
+        crop, _ = _evaluate(union, scan, scene, s.world_from_object, cfg.chamfer_margin,
+                            cfg.inlier_distance)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(union[crop]))
+        if cfg.chamfer_voxel > 0:
+            pcd = pcd.voxel_down_sample(cfg.chamfer_voxel)
+        sd = surface_distances(apply_transform(s.world_from_object, scan.vertices), scan.faces,
+                               np.asarray(pcd.points),
+                               visible_from=list(views) if views else None,
+                               samples=cfg.chamfer_samples, seed=cfg.seed)
+        s.chamfer = sd.chamfer
+        s.chamfer_to_surface = float(sd.to_surface.mean()) if len(sd.to_surface) else np.nan
+        s.chamfer_to_points = float(sd.to_points.mean()) if len(sd.to_points) else np.nan
+    sec["chamfer"] = wallclock.perf_counter() - t0
+
+    main = max(segments, key=lambda s: len(s.frames))
+    warnings = []
+    if len(segments) > 1:
+        warnings.append("the chair moved: " + "; ".join(
+            f"{s.start_time:.2f}-{s.end_time:.2f} s ({len(s.frames)} frames)" for s in segments)
+            + f"; /object/pose is the longest period's ({main.start_time:.2f}-"
+              f"{main.end_time:.2f} s)")
+    if ambiguity:
+        warnings.append(f"ambiguous orientation: poses turned by {ambiguity} deg fit the points "
+                        f"as well (a symmetric chair); kept the best-fitting one")
+    if views is None:
+        warnings.append("no camera views: the chamfer counts the whole mesh, seen or not")
+    return ChairRegistration(
+        scan=scan.path, vertices=scan.vertices, faces=scan.faces,
+        world_from_object=main.world_from_object, frames=np.asarray(frames),
+        time=np.asarray(times, np.float64), frame_poses=frame_poses, fitness=fit, rmse=rmse,
+        points=pts, method=[r.method if r.pose is not None else "" for r in results],
+        used=used, rejected=rejected, segments=segments,
+        rotation_spread_deg=main.rotation_spread_deg,
+        translation_spread_mm=main.translation_spread_mm, chamfer=main.chamfer,
+        ambiguous=bool(ambiguity), ambiguity_deg=list(ambiguity), seconds=sec,
+        warnings=warnings)
+
+
+def register_session_chair(session_dir: str | os.PathLike,
+                           extrinsics: Extrinsics | dict[str, np.ndarray], *,
+                           scan: str | os.PathLike | None = None,
+                           frames: Sequence[int] | np.ndarray | None = None, step: int = 1,
+                           config: ChairConfig | None = None,
+                           segmentation: SegmentationConfig | None = None,
+                           cloud: CloudConfig | None = None, progress: bool = False
+                           ) -> ChairRegistration:
+    """:func:`chair_clouds` then :func:`register_chair` on a session folder (the scan from the
+    session unless ``scan`` is given). The scan is checked first, so a bad scan fails fast."""
+    cfg = config or ChairConfig()
+    t0 = wallclock.perf_counter()
+    the_scan = load_scan(scan if scan is not None else session_scan_path(session_dir), cfg)
+    clouds = chair_clouds(session_dir, extrinsics, frames=frames, step=step, config=cfg,
+                          segmentation=segmentation, cloud=cloud, progress=progress)
+    took = wallclock.perf_counter() - t0
+    reg = register_chair(the_scan, clouds, config=cfg, progress=progress)
+    reg.seconds = {"clouds": took, **reg.seconds}
+    reg.warnings = clouds.warnings + reg.warnings
+    return reg

@@ -1,0 +1,310 @@
+"""Chair registration (issue 8, item 1) on simulated sessions against the simulator's truth.
+
+Sessions: 4 s at 5 fps (20 frames), 4 cameras NFOV 2x2 binned, depth only, one ChArUco pose,
+the empty-room background recording; camera poses from truth.json (the calibration's accuracy
+is tested elsewhere). Chairs and seeds: straight (seed 1), stool (seed 2), armchair (seed 5,
+depth noise x1.5), sofa (seed 4). Requirements (issue 8): pose within 5 mm and 0.5 deg of the
+truth and chamfer of the registered mesh to its points <= 0.5 cm.
+
+The pose error is measured on the chair itself: the rotation angle, and the largest distance
+between the scan's vertices placed by the estimate and by the truth (every point of the chair
+within 5 mm). The translation of ``world_from_object`` at the scan frame's origin — an arbitrary
+point up to ~1.7 m from the chair, where the rotation error is magnified — is printed too. A
+stool is symmetric: poses that map its mesh onto itself are equivalent, and the error is the
+smallest over them.
+
+Run with ``-s`` to see the measured numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from couch.fitting.chair import (
+    ChairClouds,
+    ChairRegistrationError,
+    average_poses,
+    chair_clouds,
+    pose_segments,
+    register_chair,
+    register_session_chair,
+    rotation_angle_deg,
+)
+from couch.geometry import apply_transform, invert_transform, make_transform
+from couch.schema import read_processed
+from couch.tools.sim.session import SessionConfig, simulate_session
+
+COMMON = dict(duration=4.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED", charuco_poses=1,
+              color=False)
+SESSIONS = {
+    "straight": dict(seed=1, chair="straight"),
+    "stool": dict(seed=2, chair="stool"),
+    "armchair": dict(seed=5, chair="armchair", noise=1.5, interaction="right_hand"),
+    "sofa": dict(seed=4, chair="sofa"),
+}
+
+
+@pytest.fixture(scope="session")
+def sim(tmp_path_factory):
+    """``sim(name)`` → the simulated session, its chair clouds and registration, made once."""
+    cache: dict[str, dict] = {}
+
+    def get(name: str) -> dict:
+        if name not in cache:
+            root = tmp_path_factory.mktemp(f"chair_{name}")
+            t0 = time.perf_counter()
+            simulate_session(root, SessionConfig(**COMMON, **SESSIONS[name]), progress=False)
+            t_sim = time.perf_counter() - t0
+            info = json.loads((root / "truth.json").read_text())
+            truth = read_processed(root / "ground_truth.h5")
+            ext = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
+            t0 = time.perf_counter()
+            clouds = chair_clouds(root, ext)
+            t_clouds = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            reg = register_chair(root / "chair_scan.obj", clouds)
+            t_reg = time.perf_counter() - t0
+            print(f"\n[{name}] {SESSIONS[name]} (+{COMMON}); simulated in {t_sim:.1f} s, chair "
+                  f"clouds {t_clouds:.1f} s, registration {t_reg:.1f} s\n{reg.summary()}")
+            cache[name] = {"root": root, "info": info, "truth": truth, "ext": ext,
+                           "clouds": clouds, "reg": reg}
+        return cache[name]
+
+    return get
+
+
+def _symmetries(vertices: np.ndarray, faces: np.ndarray, centre: np.ndarray,
+                tol: float = 1e-3) -> list[np.ndarray]:
+    """(4,4) object-frame transforms that map the mesh onto itself (identity included): turns
+    about the vertical through ``centre`` — the object's vertical is found as the axis the
+    candidate turns are tried about (every principal axis), kept when every vertex lands
+    within ``tol`` of the surface."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                        o3d.core.Tensor(faces.astype(np.uint32)))
+    _, axes = np.linalg.eigh(np.cov((vertices - centre).T))
+    found = [np.eye(4)]
+    for axis in axes.T:
+        for deg in (60, 72, 90, 120, 180, 240, 270, 288, 300):
+            rot = o3d.geometry.get_rotation_matrix_from_axis_angle(axis * np.radians(deg))
+            m = make_transform(rot, centre - rot @ centre)
+            d = scene.compute_distance(o3d.core.Tensor(
+                apply_transform(m, vertices).astype(np.float32))).numpy()
+            if d.max() < tol:
+                found.append(m)
+    return found
+
+
+def _area_centroid(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(3,) area-weighted centroid of a mesh surface (on every symmetry axis)."""
+    tri = vertices[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return (area[:, None] * tri.mean(1)).sum(0) / area.sum()
+
+
+def _pose_errors(est: np.ndarray, truth: np.ndarray, vertices: np.ndarray,
+                 faces: np.ndarray | None = None) -> dict[str, float]:
+    """Rotation error (deg), largest vertex displacement and error at the chair's centre and
+    at the scan origin (mm); with ``faces``, the smallest over the mesh's symmetries."""
+    centre = vertices.mean(0)
+    syms = [np.eye(4)] if faces is None else _symmetries(vertices, faces,
+                                                         _area_centroid(vertices, faces))
+    best = None
+    for s in syms:
+        t = truth @ s
+        e = {"rot_deg": float(rotation_angle_deg(est, t)),
+             "max_vertex_mm": float(np.linalg.norm(apply_transform(est, vertices)
+                                                   - apply_transform(t, vertices), axis=1)
+                                    .max() * 1e3),
+             "centre_mm": float(np.linalg.norm(apply_transform(est, centre[None])
+                                               - apply_transform(t, centre[None])) * 1e3),
+             "origin_mm": float(np.linalg.norm(est[:3, 3] - t[:3, 3]) * 1e3),
+             "symmetries": len(syms)}
+        if best is None or e["max_vertex_mm"] < best["max_vertex_mm"]:
+            best = e
+    assert best is not None
+    if faces is not None:
+        # symmetry-proof: how far the estimate puts the scan's vertices from the true surface
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(apply_transform(truth, vertices).astype(np.float32)),
+                            o3d.core.Tensor(faces.astype(np.uint32)))
+        best["surface_mm"] = float(scene.compute_distance(o3d.core.Tensor(
+            apply_transform(est, vertices).astype(np.float32))).numpy().max() * 1e3)
+    return best
+
+
+@pytest.mark.parametrize("name", list(SESSIONS))
+def test_chair_pose_and_chamfer(sim, name):
+    """Pose within 5 mm / 0.5 deg of the truth, chamfer <= 0.5 cm, one static segment."""
+    s = sim(name)
+    reg, truth = s["reg"], s["truth"]
+    true_pose = np.array(s["info"]["chair"]["world_from_scan"])
+    # the schema's /object/pose of the truth is the same transform as truth.json's
+    assert np.allclose(truth.object_pose, true_pose, atol=1e-6)
+    faces = truth.object_faces if name == "stool" else None
+    err = _pose_errors(reg.world_from_object, true_pose, reg.vertices, faces)
+    print(f"[{name}] rotation error {err['rot_deg']:.3f} deg; largest vertex error "
+          f"{err['max_vertex_mm']:.2f} mm, at the chair's centre {err['centre_mm']:.2f} mm, at "
+          f"the scan origin {err['origin_mm']:.2f} mm ({err['symmetries']} symmetric pose(s)); "
+          f"chamfer {reg.chamfer * 100:.3f} cm (points->mesh "
+          f"{reg.segments[0].chamfer_to_surface * 1e3:.2f} mm, seen mesh->points "
+          f"{reg.segments[0].chamfer_to_points * 1e3:.2f} mm); ambiguous={reg.ambiguous} "
+          f"{reg.ambiguity_deg}")
+    if "surface_mm" in err and err["symmetries"] == 1 and reg.ambiguous:
+        # a symmetric stool whose symmetry the test's search missed: every vertex of the
+        # estimate must still lie on the true surface
+        print(f"[{name}] estimate's vertices to the true surface: at most "
+              f"{err['surface_mm']:.2f} mm")
+        assert err["surface_mm"] <= 5.0
+    else:
+        assert err["rot_deg"] <= 0.5
+        assert err["max_vertex_mm"] <= 5.0
+    assert reg.chamfer <= 0.005
+    assert len(reg.segments) == 1 and not reg.moved
+    assert reg.used.sum() >= len(reg.frames) // 2
+    # per-frame estimates are kept (schema /object/frame_poses), NaN only where rejected
+    assert reg.frame_poses.shape == (len(reg.frames), 4, 4)
+    assert np.isfinite(reg.frame_poses[reg.used]).all()
+    assert reg.rotation_spread_deg < 0.5 and reg.translation_spread_mm < 5.0
+
+
+def test_stool_ambiguity_is_reported(sim):
+    """A 4-legged round stool fits turned by 90 deg as well: the registration says so."""
+    s = sim("stool")
+    spec = s["info"]["chair"]["spec"]
+    reg = s["reg"]
+    print(f"[stool] legs {spec['leg_count']}, seat {spec['seat_width']:.3f} x "
+          f"{spec['seat_depth']:.3f} m: ambiguous={reg.ambiguous} {reg.ambiguity_deg}")
+    syms = _symmetries(reg.vertices, reg.faces, _area_centroid(reg.vertices, reg.faces))
+    if len(syms) > 1:
+        assert reg.ambiguous and any("ambiguous" in w for w in reg.warnings)
+
+
+def test_same_result_twice(sim):
+    """Deterministic: the seeded global registration gives the same pose again."""
+    s = sim("straight")
+    again = register_chair(s["root"] / "chair_scan.obj", s["clouds"])
+    assert np.allclose(again.world_from_object, s["reg"].world_from_object, atol=1e-9)
+
+
+def _moved(clouds: ChairClouds, motion: np.ndarray, start: int) -> ChairClouds:
+    """The clouds with every point of frames ``start``... moved rigidly by (4,4) ``motion``
+    (the chair pushed to another place; the rest of the room moving along does not matter
+    to the registration, which crops around the chair)."""
+    out = []
+    for i, c in enumerate(clouds.clouds):
+        if i >= start:
+            c = type(c)(points=apply_transform(motion, c.points).astype(np.float32),
+                        normals=(c.normals @ motion[:3, :3].T).astype(np.float32),
+                        camera=c.camera, time=c.time)
+        out.append(c)
+    return ChairClouds(clouds.session, clouds.frames, clouds.time, out, clouds.views,
+                       clouds.warnings)
+
+
+def test_moved_chair_gives_two_segments(sim):
+    """The chair pushed 45 cm and turned 20 deg half-way: two static segments, each at its
+    own true pose, not one average of both."""
+    s = sim("straight")
+    true_pose = np.array(s["info"]["chair"]["world_from_scan"])
+    centre = apply_transform(true_pose, 0.5 * (s["reg"].vertices.min(0)
+                                              + s["reg"].vertices.max(0))[None])[0]
+    rot = o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([0, np.radians(20), 0]))
+    motion = make_transform(rot, centre - rot @ centre + np.array([0.4, 0.0, 0.2]))
+    half = len(s["clouds"].clouds) // 2
+    # the second half of the views' "farthest depth" is not moved: the chamfer's visibility
+    # is approximate here, only poses and segments are checked
+    reg = register_chair(s["root"] / "chair_scan.obj", _moved(s["clouds"], motion, half))
+    print(f"[moved] {reg.summary()}")
+    assert reg.moved and len(reg.segments) == 2
+    first, second = reg.segments
+    assert first.last < half <= second.first
+    for seg, truth in ((first, true_pose), (second, motion @ true_pose)):
+        err = _pose_errors(seg.world_from_object, truth, reg.vertices)
+        print(f"[moved] segment {seg.first}-{seg.last}: rotation {err['rot_deg']:.3f} deg, "
+              f"largest vertex error {err['max_vertex_mm']:.2f} mm")
+        assert err["rot_deg"] <= 0.5 and err["max_vertex_mm"] <= 5.0
+    assert any("moved" in w for w in reg.warnings)
+
+
+def test_average_poses_rejects_outliers():
+    """Robust averaging: 2 wild poses among 20 noisy ones are dropped, the spread reported."""
+    rng = np.random.default_rng(0)
+    base = make_transform(o3d.geometry.get_rotation_matrix_from_axis_angle(
+        np.array([0.1, 1.0, -0.2])), np.array([0.3, 0.1, -0.2]))
+    poses = []
+    for k in range(22):
+        noise = 0.002 if k < 20 else 0.3  # rad (0.11 deg noise; outliers 17 deg)
+        r = o3d.geometry.get_rotation_matrix_from_axis_angle(rng.normal(0, noise, 3))
+        poses.append(base @ make_transform(r, rng.normal(0, 0.001 if k < 20 else 0.1, 3)))
+    avg, keep, spread_r, spread_t = average_poses(np.array(poses))
+    assert keep[:20].sum() >= 18 and not keep[20:].any()
+    assert rotation_angle_deg(avg, base) < 0.1
+    assert np.linalg.norm(avg[:3, 3] - base[:3, 3]) < 1e-3
+    assert 0.05 < spread_r < 0.5 and 0.5 < spread_t < 5.0
+    # a lone jump is an outlier, a lasting one a new segment
+    seq = np.array([base] * 5 + [poses[20]] + [base] * 4 + [poses[21]] * 5)
+    labels, outliers = pose_segments(seq)
+    assert outliers == [5]
+    assert list(labels) == [0] * 5 + [-1] + [0] * 4 + [1] * 5
+
+
+# --------------------------------------------------------------------------- bad scans
+
+
+def _write_obj(path: Path, v: np.ndarray, f: np.ndarray) -> Path:
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}"
+                                                         for a, b, c in f]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def bad_scans(sim, tmp_path_factory):
+    s = sim("straight")
+    truth = s["truth"]
+    v, f = truth.object_vertices.astype(np.float64), truth.object_faces.astype(np.int64)
+    d = tmp_path_factory.mktemp("bad_scans")
+    nan = v.copy()
+    nan[7] = np.nan
+    empty = d / "empty.obj"
+    empty.write_text("# nothing\n")
+    return {
+        "empty": (empty, "empty"),
+        "not_watertight": (_write_obj(d / "holes.obj", v, f[10:]), "not watertight"),
+        "nan": (_write_obj(d / "nan.obj", nan, f), "NaN"),
+        "millimetres": (_write_obj(d / "mm.obj", v * 1000.0, f), "millimetres"),
+        "garbage": ((d / "garbage.obj"), "empty"),
+        "missing": (d / "missing.obj", "no such"),
+    }
+
+
+@pytest.mark.parametrize("kind", ["empty", "not_watertight", "nan", "millimetres", "garbage",
+                                  "missing"])
+def test_bad_scan_gives_clear_error(sim, bad_scans, kind):
+    s = sim("straight")
+    path, words = bad_scans[kind]
+    if kind == "garbage":
+        path.write_bytes(b"\x00\xff binary junk \x13\x37" * 50)
+    with pytest.raises(ChairRegistrationError) as e:
+        register_chair(path, s["clouds"])
+    print(f"[bad scan {kind}] {e.value}")
+    assert str(path) in str(e.value) and words in str(e.value)
+    # the session entry point checks the scan before reading any recording
+    with pytest.raises(ChairRegistrationError, match=words):
+        register_session_chair(s["root"], s["ext"], scan=path)
+
+
+def test_session_entry_point(sim):
+    """``register_session_chair`` (clouds every 2nd frame) agrees with the full run."""
+    s = sim("straight")
+    reg = register_session_chair(s["root"], s["ext"], step=2)
+    assert len(reg.frames) == (len(s["clouds"].frames) + 1) // 2
+    assert rotation_angle_deg(reg.world_from_object, s["reg"].world_from_object) < 0.3
+    assert invert_transform(reg.world_from_object) is not None
