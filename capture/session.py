@@ -10,7 +10,7 @@ naming them::
                  "calibration_capture": "calibration/<serial>.mkv",
                  "background": "background/<serial>.mkv" | null}, ...],
      "imu": {"mvnx": "imu/recording.mvnx", ...}, "board": {...ChArUco BoardSpec fields...},
-     "subject": {"scan": "subject/scan.ply"}}
+     "subject": {"scan": "subject/scan.ply"}, "chair_scan": "chair_scan.obj"}
 
 Without a manifest the folders are listed instead (cameras by file stem, in name order).
 """
@@ -60,6 +60,8 @@ class SessionFiles:
         mvnx: the IMU's MVNX export, or None.
         board: the manifest's ChArUco board fields, or None.
         subject_scan: a mesh of the subject (for the body shape), or None.
+        chair_scan: the object's scan mesh: the manifest's ``chair_scan``, else
+            ``chair_scan.obj`` / ``.ply`` when present, else None.
     """
 
     root: Path
@@ -68,6 +70,7 @@ class SessionFiles:
     mvnx: Path | None
     board: dict[str, Any] | None
     subject_scan: Path | None = None
+    chair_scan: Path | None = None
 
     def camera(self, serial: str) -> CameraFiles | None:
         """The camera ``serial``, or None if the session has no such camera."""
@@ -107,12 +110,14 @@ def session_files(session_dir: str | os.PathLike) -> SessionFiles:
         mvnx_entry = (doc.get("imu") or {}).get("mvnx")
         board = doc.get("board")
         scan_entry = (doc.get("subject") or {}).get("scan")
+        chair_entry = doc.get("chair_scan")
     except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
         raise SessionLayoutError(f"{manifest}: malformed session manifest ({exc!r})") from None
     mvnx = root / mvnx_entry if mvnx_entry else _first(root / "imu", "*.mvnx")
     scan = root / scan_entry if scan_entry else _subject_scan(root)
+    chair = root / chair_entry if chair_entry else _chair_scan(root)
     return SessionFiles(root, manifest, cameras, mvnx, board if isinstance(board, dict) else None,
-                        scan)
+                        scan, chair)
 
 
 def _first(folder: Path, pattern: str) -> Path | None:
@@ -129,7 +134,12 @@ def _listed(root: Path) -> SessionFiles:
         cameras.append(CameraFiles(serial, recordings.get(serial), captures.get(serial),
                                    bg if bg.is_file() else None))
     return SessionFiles(root, None, cameras, _first(root / "imu", "*.mvnx"), None,
-                        _subject_scan(root))
+                        _subject_scan(root), _chair_scan(root))
+
+
+def _chair_scan(root: Path) -> Path | None:
+    return next((p for p in (root / "chair_scan.obj", root / "chair_scan.ply") if p.is_file()),
+                None)
 
 
 def _subject_scan(root: Path) -> Path | None:

@@ -40,7 +40,6 @@ frame. ``world_from_object`` is the schema's ``/object/pose``: scan-frame vertic
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import time as wallclock
 from collections.abc import Sequence
@@ -299,18 +298,17 @@ def load_scan(source: str | os.PathLike | tuple[np.ndarray, np.ndarray],
 
 
 def session_scan_path(session_dir: str | os.PathLike) -> Path:
-    """The session's chair scan: ``session.json``'s ``chair_scan`` entry, else
-    ``chair_scan.obj`` beside it."""
-    root = Path(session_dir)
-    manifest = root / "session.json"
-    if manifest.is_file():
-        try:
-            entry = json.loads(manifest.read_text()).get("chair_scan")
-        except (json.JSONDecodeError, AttributeError) as e:
-            raise ChairRegistrationError(f"{manifest}: not a JSON object ({e})") from None
-        if entry:
-            return root / entry
-    return root / "chair_scan.obj"
+    """The session's chair scan (:attr:`couch.capture.session.SessionFiles.chair_scan`:
+    ``session.json``'s ``chair_scan`` entry, else ``chair_scan.obj`` / ``.ply``).
+
+    Raises:
+        ChairRegistrationError: the session has none.
+    """
+    files = session_files(session_dir)
+    if files.chair_scan is None:
+        raise ChairRegistrationError(f"{files.root}: the session has no chair scan "
+                                     f"(chair_scan.obj, or session.json \"chair_scan\")")
+    return files.chair_scan
 
 
 # --------------------------------------------------------------------------- chair clouds
