@@ -640,6 +640,9 @@ def level_with_floor(extrinsics: Extrinsics,
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel_m)
     best: tuple[int, np.ndarray] | None = None
+    # the same recordings should give the same world: open3d's RANSAC draws from its own
+    # global generator, unseeded unless told
+    o3d.utility.random.seed(0)
     for _ in range(max_planes):
         if len(pcd.points) < 100:
             break

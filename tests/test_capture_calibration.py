@@ -205,8 +205,9 @@ def test_calibrate_cli(calibrated, tmp_path, capsys):
     assert "floor: plane fit rms" in report and f"wrote {out}" in report
     written = read_extrinsics(out)
     for s in ext.serials:
-        # the same calibration again (open3d's RANSAC floor fit draws its own samples: ~1e-6)
-        assert np.allclose(written.world_from_depth(s), ext.world_from_depth(s), atol=1e-5)
+        # the same calibration again (the floor's RANSAC is seeded, but open3d may run it on
+        # several threads: up to ~1e-5 apart, i.e. 0.001 deg and 0.01 mm)
+        assert np.allclose(written.world_from_depth(s), ext.world_from_depth(s), atol=1e-4)
     # given extrinsics lacking a camera, and a folder that is not there: exit 1, a message
     doc = json.loads(out.read_text())
     doc["cameras"].pop(ext.serials[0])
