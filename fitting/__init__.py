@@ -3,6 +3,8 @@
 Built so far: :mod:`couch.fitting.session` (:func:`fit_session`: sync, clouds, IMU alignment,
 shape, per-frame fits and fusion of a whole session folder), :mod:`couch.fitting.chair`
 (:func:`register_session_chair`: the chair scan placed in the world, moved chairs found),
+:mod:`couch.fitting.contacts` (:func:`detect_contacts`: contact flags, points and interaction
+labels of a motion with the chair; hand contacts still below the issue's F1),
 :mod:`couch.fitting.metrics` (MPJPE, chamfer, foot skate, jitter, sync error),
 :mod:`couch.fitting.body` (per-frame SMPL fits to person clouds, batched over frames),
 :mod:`couch.fitting.shape` (the subject's betas from the session's clouds or a scan),
@@ -25,6 +27,7 @@ from couch.fitting.chair import (
     register_session_chair,
 )
 from couch.fitting.clouds import PaddedClouds, pad_clouds
+from couch.fitting.contacts import ContactConfig, Contacts, detect_contacts
 from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
 from couch.fitting.limits import joint_limit_penalty
 from couch.fitting.metrics import (
@@ -58,6 +61,8 @@ __all__ = [
     "ChairConfig",
     "ChairRegistration",
     "ChairRegistrationError",
+    "ContactConfig",
+    "Contacts",
     "FusionConfig",
     "PaddedClouds",
     "SessionFit",
@@ -69,6 +74,7 @@ __all__ = [
     "WorldAlignment",
     "chamfer",
     "contact_runs",
+    "detect_contacts",
     "fit_betas_to_scan",
     "fit_bodies",
     "fit_bodies_frame_by_frame",
