@@ -563,7 +563,7 @@ def fit_session(session_dir: str | os.PathLike, *,
 
     Raises:
         SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person
-            points (the message names the session).
+            points, an unreadable subject scan (the message names the session or file).
         SyncError, SegmentationError, KinectFormatError, MvnxError: from the stages (they name
             the files).
     """
@@ -617,12 +617,19 @@ def fit_session(session_dir: str | os.PathLike, *,
     if scan_path is not None:
         import trimesh
 
-        mesh = trimesh.load(scan_path, force="mesh", process=False)
-        if len(mesh.vertices) == 0:
-            raise SessionFitError(f"{scan_path}: the subject scan has no vertices")
-        betas = fit_betas_to_scan(np.asarray(mesh.vertices), np.asarray(mesh.faces),
-                                  config=dataclasses.replace(cfg.shape, body=bcfg),
-                                  progress=progress).betas
+        try:
+            mesh = trimesh.load(scan_path, force="mesh", process=False)
+            vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        except Exception as exc:  # trimesh raises many kinds on a bad file
+            raise SessionFitError(f"{scan_path}: cannot read the subject scan ({exc})") from None
+        if len(vertices) == 0 or not np.isfinite(vertices).all():
+            raise SessionFitError(f"{scan_path}: the subject scan has no (finite) vertices")
+        try:
+            betas = fit_betas_to_scan(vertices, faces if len(faces) else None,
+                                      config=dataclasses.replace(cfg.shape, body=bcfg),
+                                      progress=progress).betas
+        except ValueError as exc:
+            raise SessionFitError(f"{scan_path}: {exc}") from None
         shape_source = "scan"
     else:
         shape = fit_shape(clouds, imu_body_params(imu, align, zero, coarse), cameras=cameras,

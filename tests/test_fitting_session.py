@@ -227,3 +227,12 @@ def test_subject_scan_gives_the_shape(sim, tmp_path):
           f"{clouds * 100:.2f} cm, mean shape {zero * 100:.2f} cm")
     assert sf.shape_source == "scan" and s["sf"].shape_source == "clouds"
     assert err < 0.5 * zero
+
+
+def test_bad_subject_scan_is_a_clear_error(sim, tmp_path):
+    s = sim("a")
+    bad = tmp_path / "scan.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nend_header\n\x00")
+    with pytest.raises(SessionFitError, match=r"scan\.ply"):
+        fit_session(s["root"], extrinsics=s["ext"], chair=s["chair"], scan=bad,
+                    config=dataclasses.replace(SessionFitConfig(), fuse=False))
