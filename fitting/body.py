@@ -139,7 +139,7 @@ class BodyFitConfig:
     correspond_every: int = 10
     max_distance: float = 0.10
     sigma: float = 0.02
-    clothing_margin: float = 0.02
+    clothing_margin: float = 0.01
     w_points: float = 100.0
     w_surface: float = 50.0
     w_prior: float = 1.0

@@ -8,10 +8,10 @@ chair pose for its registration (issue 8). The drift itself is measured on a 2-m
 test_sync (10 s cannot show 20 ppm).
 
 Measured when written (``pytest -s``), sessions a / b: IMU offset error -0.07 / -1.12 ms;
-heading error -0.24 / +0.40 deg; MPJPE IMU 2.03 / 1.71, per-frame fit 1.05 / 1.23, fused
-1.05 / 1.33 cm; chamfer (visible surface) fit 1.45 / 1.71, fused 1.54 / 1.79, true body
-1.74 / 2.01 cm; jitter fused / truth 0.99 / 0.95; foot skate in the IMU's contact frames 3.75 mm
-per frame at 5 fps / 0.53 at 15 fps (0.63 / 0.27 at 30 fps).
+heading error -0.23 / +0.34 deg; MPJPE IMU 2.08 / 1.67, per-frame fit 0.93 / 1.04, fused
+0.88 / 1.02 cm; chamfer (visible surface) fit 1.17 / 1.42, fused 1.27 / 1.49, true body
+1.74 / 2.01 cm; jitter fused / truth 0.99 / 0.96; foot skate in the IMU's contact frames 3.40 mm
+per frame at 5 fps / 0.50 at 15 fps (0.57 / 0.25 at 30 fps).
 """
 
 from __future__ import annotations
@@ -93,7 +93,8 @@ def test_sync_and_heading(sim, name):
 
 @pytest.mark.parametrize("name", list(SESSIONS))
 def test_body_accuracy_against_ground_truth(sim, name):
-    """Issue 7: MPJPE <= 2 cm, the fusion beats the IMU, chamfer no worse than the true body's,
+    """Issue 7: MPJPE <= 2 cm, the fusion beats the IMU, the fits' chamfer <= 1.5 cm and no
+    worse than the true body's (the fused motion's no worse than the true body's),
     foot skate <= 2 mm/frame at 30 fps (60 mm/s) in the IMU's contact frames, jitter <= the
     truth's + 10 %."""
     from couch.fitting.session import _chamfers
@@ -127,7 +128,7 @@ def test_body_accuracy_against_ground_truth(sim, name):
     assert e_fit <= 0.02
     assert e_fused <= 0.02
     assert e_fused < e_imu
-    assert np.mean(sf.fit_chamfer[both]) <= np.mean(c_true[both])
+    assert np.mean(sf.fit_chamfer[both]) <= min(0.015, np.mean(c_true[both]))
     assert np.mean(sf.chamfer[both]) <= np.mean(c_true[both])
     assert jit <= 1.1
     # the issue's 2 mm/frame is at the dataset's 30 fps: 60 mm/s of sliding
@@ -190,7 +191,7 @@ def test_session_without_imu_is_a_clear_error(sim, tmp_path):
 def test_subject_scan_gives_the_shape(sim, tmp_path):
     """A session with ``subject/scan.ply`` (the subject's clothed surface, standing, facing +Z)
     takes its betas from the scan instead of fitting them to the clouds. Measured when written:
-    rest-pose joint error 1.32 cm from the scan (its clothes make the body look bigger), 0.63
+    rest-pose joint error 0.86 cm from the scan (its clothes make the body look bigger), 0.57
     cm from the session's clouds, 7.48 cm for the mean shape."""
     import trimesh
 
