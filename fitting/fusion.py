@@ -23,10 +23,13 @@ of one torch optimisation) so the motion
   ``sigma_step_deg``, ``sigma_acc_m``);
 * does not slide its feet, COUCH Eq. 8: ``L_slide = Σ ||f̃_i − f_i||²`` over the four foot points
   (heels and big toes, :data:`couch.fitting.metrics.FOOT_KEYPOINTS`, body-model keypoints) in the
-  frames the IMU marks them in contact, with targets f̃ the mean position of each point over each
-  contiguous run of contact frames (recomputed from the current motion between ``rounds``), the
-  target height put on the floor (``floor_height`` plus the point's height above the sole in the
-  rest pose) so feet in contact stand on the floor; and no foot point goes below the floor.
+  frames the IMU marks them in contact while the foot point is slow (``contact_max_speed``: a
+  flag's first or last frame often catches the heel rising or landing), with targets f̃ one per
+  contiguous run of such frames: the mean of the Kinect fits' foot point weighted by the
+  reliability of its ankle and foot joints, plus the current motion's (``contact_motion_weight``
+  per frame; recomputed between ``rounds``), the target height put on the floor
+  (``floor_height`` plus the point's height above the sole in the rest pose) so feet in contact
+  stand on the floor; and no foot point goes below the floor.
 
 Every term is a squared residual over a scale (metres, degrees), summed over frames and divided
 by T; the optimiser is L-BFGS over the whole sequence, in float64 (a float64 copy of a float32
@@ -47,6 +50,7 @@ import numpy as np
 import torch
 
 from couch.body import BodyModel
+from couch.body.skeleton import JOINT_INDEX
 from couch.fitting.body import cached_model
 from couch.fitting.metrics import FOOT_KEYPOINTS
 from couch.fitting.params import BodyParams
@@ -312,7 +316,9 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     with torch.no_grad():
         kin_feet = skin.vertices(kin_posed, v_shaped, foot_index)
     # reliability of the fits' foot points: their ankle and foot joints (heel, toe per side)
-    foot_joints = np.array([[7, 10], [7, 10], [8, 11], [8, 11]])
+    left, right = ([JOINT_INDEX[f"{side}_ankle"], JOINT_INDEX[f"{side}_foot"]]
+                   for side in ("left", "right"))
+    foot_joints = np.array([left, left, right, right])  # FOOT_KEYPOINTS order: L, L, R, R
     foot_rel = tensor(rel[:, foot_joints].mean(-1))
 
     def forward() -> tuple[torch.Tensor, Any]:
