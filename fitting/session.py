@@ -65,8 +65,7 @@ from couch.fitting.fusion import FusionConfig, fuse_motion
 from couch.fitting.metrics import CameraView, surface_distances
 from couch.fitting.params import BodyParams
 from couch.fitting.shape import ShapeFitConfig, fit_betas_to_scan, fit_shape
-from couch.fitting.terms import vertex_normals
-from couch.geometry import apply_transform
+from couch.geometry import apply_transform, vertex_normals
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from couch.sync import (
     CameraTrack,
@@ -502,7 +501,8 @@ def refine_alignment(fitted_joints: np.ndarray, imu_joints: np.ndarray, weights:
 
 def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: np.ndarray,
                     fallback: np.ndarray, views: Sequence[CameraView], model: BodyModel,
-                    config: SessionFitConfig | None = None) -> np.ndarray:
+                    config: SessionFitConfig | None = None, *,
+                    vertices: np.ndarray | None = None) -> np.ndarray:
     """(T,24) weights of per-frame fits for the fusion, in [0, 1].
 
     Per frame: 0 for a fallback frame (too few points), else from its chamfer (1 at or below
@@ -510,17 +510,14 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
     vertices the joint moves most that face a camera from inside its image and have a cloud
     point within ``support_distance``, mapped from [``min_support``, ``full_support``] to
     [0, 1] (a limb hidden behind the chair faces a camera but is not backed by points; a limb
-    out of every image has no support at all).
+    out of every image has no support at all). ``vertices``: the (T,V,3) posed mesh of
+    ``params`` when the caller has it already.
     """
     cfg = config or SessionFitConfig()
     t = params.num_frames
-    verts, _ = _posed(model, params)
+    verts = _posed(model, params)[0] if vertices is None else np.asarray(vertices, np.float64)
     seg = model.weights.cpu().numpy().argmax(1)  # (V,) the joint moving each vertex most
-    with torch.no_grad():
-        vt = torch.as_tensor(verts)
-        faces = torch.as_tensor(model.faces)
-        normals = vertex_normals(vt, faces)
-        normals = normals.numpy()
+    normals = vertex_normals(verts, model.faces)
     # facing a camera that has the vertex in its image
     facing = np.zeros(verts.shape[:2], bool)
     for view in views:
@@ -655,7 +652,8 @@ def fit_session(session_dir: str | os.PathLike, *,
     fit_chamfer = _chamfers(fit_verts, full.faces, clouds, views, present, occluders,
                             bcfg.error_samples)
     fit_chamfer[fit.fallback] = np.nan
-    rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, full, cfg)
+    rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, full, cfg,
+                          vertices=fit_verts)
     if (rel > 0).any():
         align = refine_alignment(fit.joints, imu.joint_positions, rel)
     else:
