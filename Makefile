@@ -34,13 +34,13 @@ system-deps:
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
-# The furthest-along main job on the bundled fixture session: what the cameras recorded (contact
-# sheet), its ground truth (couch-inspect), and the body model seated (preview PNG).
+# The main job on the bundled fixture session: couch-process (calibration, chair registration,
+# sync, body fits, contacts) into out/fixture_processed/, its summary, and where the report is.
+# A second run resumes from the stage cache in out/fixture_processed/cache/.
 demo: $(STAMP)
-	$(BIN)/couch-contact-sheet fixtures/sessions/sim_fixture --frame 6 -o out/fixture_contact_sheet.png
-	$(BIN)/couch-inspect fixtures/sessions/sim_fixture/ground_truth.h5
-	$(BIN)/couch-calibrate fixtures/sessions/sim_fixture --out out/fixture_extrinsics.json
-	$(BIN)/couch-demo -o out/demo_sitting.png
+	$(BIN)/couch-process fixtures/sessions/sim_fixture -o out/fixture_processed
+	$(BIN)/couch-inspect out/fixture_processed/processed.h5
+	@echo "QA report: out/fixture_processed/report/index.html"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -52,9 +52,10 @@ clean:
 	rm -rf $(VENV) out .pytest_cache
 
 # The committed fixture session (fixtures/sessions/sim_fixture): regenerate with `make fixtures`.
-# 2 s, 4 cameras at 5 fps, 320x288 depth (NFOV_2X2BINNED), 3 ChArUco poses, seed 4.
+# 6 s (the IMU sync needs >= 4 s of overlap), 4 cameras at 5 fps, 320x288 depth
+# (NFOV_2X2BINNED), 3 ChArUco poses, seed 4.
 FIXTURE := fixtures/sessions/sim_fixture
 fixtures: $(STAMP)
 	rm -rf $(FIXTURE)
-	$(BIN)/couch-simulate $(FIXTURE) --duration 2 --fps 5 --cameras 4 \
+	$(BIN)/couch-simulate $(FIXTURE) --duration 6 --fps 5 --cameras 4 \
 	  --depth-mode NFOV_2X2BINNED --charuco-poses 3 --jpeg-quality 80 --masks --seed 4 --quiet

@@ -595,7 +595,8 @@ def level_with_floor(extrinsics: Extrinsics,
     Args:
         extrinsics: camera poses (any world frame, e.g. from :func:`calibrate_extrinsics`).
         recording_paths: the session recordings (``kinect/<serial>.mkv``), a list (serial from
-            the file) or a mapping serial -> path; every camera in ``extrinsics`` needs one.
+            the file) or a mapping serial -> path; cameras without one (a recording lost) add
+            no floor points but must still be above the floor found.
         frames: depth frames per camera fused (the first ones of the recording).
         voxel_m: voxel size of the downsampling before RANSAC.
         distance_m: plane inlier distance (RANSAC, and the final least-squares refit on the
@@ -609,8 +610,8 @@ def level_with_floor(extrinsics: Extrinsics,
         plane in the reference frame.
 
     Raises:
-        CalibrationError: a camera has no recording or no depth frames, or no horizontal plane
-            with every camera above it was found.
+        CalibrationError: no camera has a recording, a recording has no depth frames, or no
+            horizontal plane with every camera above it was found.
     """
     import open3d as o3d  # heavy import, only needed here
 
@@ -622,13 +623,15 @@ def level_with_floor(extrinsics: Extrinsics,
         serial = str(given) if given is not None else _serial_of(
             open_azure_mkv(path, require_calibration=False), path)
         paths[serial] = path
-    missing = [s for s in extrinsics.cameras if s not in paths]
-    if missing:
-        raise CalibrationError(f"no session recording for camera(s) {', '.join(missing)} "
-                               f"(given: {', '.join(map(str, paths.values()))})")
+    if not any(s in paths for s in extrinsics.cameras):
+        raise CalibrationError(f"no session recording for any of the camera(s) "
+                               f"{', '.join(extrinsics.cameras)} (given: "
+                               f"{', '.join(map(str, paths.values())) or 'none'})")
     # Work in the frame the extrinsics are in ("cur"): any earlier levelling is replaced.
     clouds = []
     for s, cam in extrinsics.cameras.items():
+        if s not in paths:
+            continue
         calib, depths = _first_depth_frames(paths[s], frames)
         for d in depths:
             pts = depth_to_points(d, calib.depth)

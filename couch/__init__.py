@@ -12,3 +12,13 @@ try:
     __version__ = version("couch")
 except PackageNotFoundError:  # running from a source tree that was not installed
     __version__ = "0.0.0+unknown"
+
+
+def __getattr__(name: str):
+    # ``couch.process`` is the pipeline's entry point; it lives in a later stage, so it is
+    # imported only when asked for (importing ``couch`` stays light and free of cycles).
+    if name == "process":
+        from couch.tools.process import process
+
+        return process
+    raise AttributeError(f"module 'couch' has no attribute {name!r}")

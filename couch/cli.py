@@ -21,7 +21,9 @@ def summarize(s: ProcessedSession) -> str:
         f"body           betas[:3] = {np.array2string(s.betas[:3], precision=2)}, "
         f"pelvis travel {np.linalg.norm(np.diff(s.joints[:, 0], axis=0), axis=1).sum():.2f} m",
     ]
-    angle, _ = transform_distance(s.object_pose[None], s.object_frame_poses)
+    # processed.h5 leaves rows the chair was not registered on NaN
+    estimated = np.isfinite(s.object_frame_poses).all(axis=(1, 2))
+    angle, _ = transform_distance(s.object_pose[None], s.object_frame_poses[estimated])
     spread = f", per-frame spread {np.degrees(np.median(angle)):.2f} deg" if len(angle) else ""
     where = np.array2string(s.object_pose[:3, 3], precision=2)
     lines.append(f"object         {s.object_name}: {len(s.object_vertices)} vertices, "

@@ -1,7 +1,9 @@
 """Fitting stage: body fits to point clouds, chair registration, contacts, `couch-process`.
 
-Built so far: :mod:`couch.fitting.session` (:func:`fit_session`: sync, clouds, IMU alignment,
-shape, per-frame fits and fusion of a whole session folder), :mod:`couch.fitting.chair`
+Built so far: :mod:`couch.fitting.pipeline` (:func:`run_pipeline`, the stages behind
+``couch-process``: calibrate, chair, body, contacts, cached), :mod:`couch.fitting.session`
+(:func:`fit_session`: sync, clouds, IMU alignment, shape, per-frame fits and fusion of a
+whole session folder), :mod:`couch.fitting.chair`
 (:func:`register_session_chair`: the chair scan placed in the world, moved chairs found),
 :mod:`couch.fitting.contacts` (:func:`detect_contacts`: contact flags, points and interaction
 labels of a motion with the chair; hand contacts still below the issue's F1),
@@ -43,6 +45,16 @@ from couch.fitting.metrics import (
     sync_error,
 )
 from couch.fitting.params import BodyParams
+from couch.fitting.pipeline import (
+    STAGES,
+    BodyResult,
+    CalibrationResult,
+    PipelineResult,
+    ProcessConfig,
+    ProcessError,
+    StageRun,
+    run_pipeline,
+)
 from couch.fitting.session import (
     SessionFit,
     SessionFitConfig,
@@ -54,9 +66,12 @@ from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit
 
 __all__ = [
     "FOOT_KEYPOINTS",
+    "STAGES",
     "BodyFit",
     "BodyFitConfig",
     "BodyParams",
+    "BodyResult",
+    "CalibrationResult",
     "CameraView",
     "ChairConfig",
     "ChairRegistration",
@@ -65,11 +80,15 @@ __all__ = [
     "Contacts",
     "FusionConfig",
     "PaddedClouds",
+    "PipelineResult",
+    "ProcessConfig",
+    "ProcessError",
     "SessionFit",
     "SessionFitConfig",
     "SessionFitError",
     "ShapeFit",
     "ShapeFitConfig",
+    "StageRun",
     "SurfaceDistances",
     "WorldAlignment",
     "chamfer",
@@ -90,6 +109,7 @@ __all__ = [
     "pad_clouds",
     "register_chair",
     "register_session_chair",
+    "run_pipeline",
     "surface_distances",
     "sync_error",
 ]

@@ -546,6 +546,7 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
 def fit_session(session_dir: str | os.PathLike, *,
                 extrinsics: Extrinsics | dict[str, np.ndarray] | None = None,
                 chair: ChairModel | None = None, scan: str | os.PathLike | None = None,
+                sync: SessionSync | None = None, frames: tuple[int, int] | None = None,
                 config: SessionFitConfig | None = None, progress: bool = False) -> SessionFit:
     """Sync, clouds, IMU-initialised per-frame fits and sequence fusion of one session.
 
@@ -555,6 +556,10 @@ def fit_session(session_dir: str | os.PathLike, *,
         chair: the registered chair (kept out of the person clouds), or None.
         scan: a mesh of the subject (betas from it); None: the session's ``subject_scan``
             if it has one, else the shape is fitted to the clouds.
+        sync: the session already synchronised with these extrinsics (e.g. by a pipeline
+            that registered the chair on the same frame table); None: synchronise here.
+        frames: (start, stop) rows of the frame table to fit (the IMU's span within them);
+            None: every row the IMU recording covers.
         config: :class:`SessionFitConfig`.
         progress: progress bars.
 
@@ -571,7 +576,7 @@ def fit_session(session_dir: str | os.PathLike, *,
 
     t0 = time.perf_counter()
     ext = extrinsics if extrinsics is not None else calibrate_session(root)
-    ss = sync_session(root, extrinsics=ext, progress=progress)
+    ss = sync if sync is not None else sync_session(root, extrinsics=ext, progress=progress)
     warnings += [f"sync: {w}" for w in ss.kinect.warnings]
     if ss.resampled is None or ss.imu_clock is None or ss.imu is None:
         raise SessionFitError(f"{root}: the session has no IMU recording (imu/*.mvnx); the body "
@@ -585,6 +590,12 @@ def fit_session(session_dir: str | os.PathLike, *,
         raise SessionFitError(f"{root}: no camera frame falls inside the IMU recording "
                               f"({ss.resampled.summary()})")
     rows = np.arange(np.flatnonzero(valid)[0], np.flatnonzero(valid)[-1] + 1)
+    if frames is not None:
+        rows = rows[(rows >= frames[0]) & (rows < frames[1])]
+        if not len(rows):
+            raise SessionFitError(f"{root}: frames {frames[0]}:{frames[1]} hold no camera frame "
+                                  f"inside the IMU recording (rows {np.flatnonzero(valid)[0]}-"
+                                  f"{np.flatnonzero(valid)[-1]} are)")
     filled = ~valid[rows]
     if filled.any():
         warnings.append(f"IMU: {int(filled.sum())} frame(s) in gaps of the IMU recording take "

@@ -312,7 +312,7 @@ def test_committed_fixture_session_is_complete_and_readable():
     manifest = json.loads((FIXTURE / "session.json").read_text())
     truth = read_processed(FIXTURE / "ground_truth.h5")
     info = json.loads((FIXTURE / "truth.json").read_text())
-    assert truth.num_frames == 10 and len(manifest["kinect"]) == 4
+    assert truth.num_frames == 30 and len(manifest["kinect"]) == 4
     for dev, cam in zip(manifest["kinect"], info["cameras"], strict=True):
         caps = list(open_azure_mkv(FIXTURE / dev["file"]))
         assert len(caps) == truth.num_frames - len(cam["dropped_frames"])

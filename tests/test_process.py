@@ -1,0 +1,251 @@
+"""``couch-process`` / ``couch.process`` (issue 8, items 3-4) end to end on the committed fixture.
+
+The fixture (fixtures/sessions/sim_fixture: 6 s, 4 cameras at 5 fps, a subject sitting down on
+a sofa) is processed once per test session with nothing given: our own calibration, chair
+registration, sync, fits, fusion and contacts. Our calibrated world is levelled on the floor
+but its heading and horizontal origin are the reference camera's, so results are compared with
+the simulator's truth after the rigid transform that best maps our camera centres onto the true
+ones (any calibration error stays in the comparison).
+
+Bad sessions are views of the fixture (symlinks) with one thing broken; they reuse the good
+run's cache, so only the stages that read the broken file run again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import couch
+from couch.body.skeleton import CONTACT_NAMES
+from couch.fitting.chair import rotation_angle_deg
+from couch.fitting.metrics import mpjpe
+from couch.fitting.pipeline import STAGES, ProcessError, run_pipeline
+from couch.geometry import apply_transform
+from couch.schema import read_processed
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"
+
+
+@pytest.fixture(scope="session")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("processed")
+    result = couch.process(FIXTURE, out)
+    print(result.summary())
+    return result
+
+
+@pytest.fixture(scope="session")
+def truth():
+    return read_processed(FIXTURE / "ground_truth.h5"), json.loads(
+        (FIXTURE / "truth.json").read_text())
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(4,4) rigid transform minimising |T src - dst| over (N,3) point pairs."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, cd - r @ cs
+    return m
+
+
+def _truth_from_ours(result, info) -> np.ndarray:
+    """(4,4) our world → the simulator's world, from the cameras' centres."""
+    true = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
+    serials = [s for s in result.extrinsics.cameras if s in true]
+    ours = np.array([result.extrinsics.world_from_depth(s)[:3, 3] for s in serials])
+    return _kabsch(ours, np.array([true[s][:3, 3] for s in serials]))
+
+
+def test_fixture_is_processed(run):
+    assert run.ok, run.summary()
+    assert [run.stages[s].status for s in STAGES] == ["ran"] * len(STAGES)
+    data = read_processed(run.processed)
+    assert data.num_frames >= 25 and data.contact_names == CONTACT_NAMES
+    assert set(data.quality) >= {"fit_chamfer", "chamfer", "reliability", "frame_rows"}
+    # per-frame chair estimates on the rows the chair was registered on (every 2nd), NaN else
+    have = np.isfinite(data.object_frame_poses).all(axis=(1, 2))
+    assert 0.3 <= have.mean() <= 0.7
+
+
+def test_end_to_end_accuracy_against_the_simulator(run, truth):
+    """With our own calibration and registered chair: chair pose within 5 mm / 0.5 deg and
+    chamfer <= 0.5 cm; body MPJPE <= 2 cm; pelvis contact F1 and label accuracy."""
+    gt, info = truth
+    data = read_processed(run.processed)
+    align = _truth_from_ours(run, info)
+    true_pose = np.array(info["chair"]["world_from_scan"])
+    est = align @ data.object_pose
+    v = data.object_vertices.astype(np.float64)
+    vertex_mm = np.linalg.norm(apply_transform(est, v) - apply_transform(true_pose, v),
+                               axis=1).max() * 1e3
+    rot = float(rotation_angle_deg(est, true_pose))
+    rows = data.quality["frame_rows"]
+    joints = apply_transform(align, data.joints.astype(np.float64))
+    e = mpjpe(joints, gt.joints[rows]).mean()
+    t_err = np.abs(data.time - gt.time[rows]).max()
+    act, true_act = data.contact_active, gt.contact_active[rows]
+    tp = (act & true_act).sum(0)
+    f1 = 2 * tp / np.maximum(act.sum(0) + true_act.sum(0), 1)
+    labels = (data.interaction == gt.interaction[rows]).mean()
+    print(f"end to end: chair rotation {rot:.3f} deg, largest vertex error {vertex_mm:.2f} mm, "
+          f"chamfer {run.chair.chamfer * 100:.3f} cm; MPJPE {e * 100:.2f} cm; contact F1 "
+          + ", ".join(f"{n} {f:.2f} ({int(true_act[:, i].sum())} true frames)"
+                      for i, (n, f) in enumerate(zip(CONTACT_NAMES, f1, strict=True)))
+          + f"; label accuracy {labels:.3f}; time stamps within {t_err * 1e3:.3f} ms")
+    assert t_err < 1e-3  # the processed rows are the truth's frames
+    assert rot <= 0.5 and vertex_mm <= 5.0
+    assert run.chair.chamfer <= 0.005
+    assert e <= 0.02
+    assert f1[CONTACT_NAMES.index("pelvis")] >= 0.9
+    assert labels >= 0.9
+
+
+def test_report_is_written(run):
+    report = run.report
+    assert report is not None and report.is_file()
+    summary = json.loads((report.parent / "summary.json").read_text())
+    assert summary["ok"] is True
+    html = report.read_text()
+    for png in ("sync.png", "fit_error.png", "contacts.png", "chair.png"):
+        assert (report.parent / png).stat().st_size > 1000
+        assert png in html
+    assert list((report.parent / "previews").glob("*.png"))
+
+
+def test_rerun_resumes_from_the_cache(run, tmp_path):
+    again = run_pipeline(FIXTURE, run.output)
+    assert again.ok
+    assert [again.stages[s].status for s in STAGES] == ["cached"] * len(STAGES)
+    a, b = read_processed(run.processed), read_processed(again.processed)
+    assert np.array_equal(a.joints, b.joints) and np.array_equal(a.object_pose, b.object_pose)
+    assert np.array_equal(a.contact_active, b.contact_active)
+
+
+def _view(tmp: Path, cache_from: Path | None, *, skip: tuple[str, ...] = ()) -> tuple[Path, Path]:
+    """A symlinked copy of the fixture (files in ``skip`` not linked) and an output folder
+    holding a copy of ``cache_from``'s cache."""
+    root = tmp / "session"
+    for src in FIXTURE.rglob("*"):
+        rel = src.relative_to(FIXTURE)
+        if src.is_dir() or str(rel) in skip:
+            continue
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.symlink(src, root / rel)
+    out = tmp / "out"
+    if cache_from is not None:
+        shutil.copytree(cache_from / "cache", out / "cache")
+    return root, out
+
+
+def test_corrupted_mvnx_is_a_fault_naming_the_file(run, tmp_path):
+    mvnx = "imu/recording.mvnx"
+    root, out = _view(tmp_path, run.output, skip=(mvnx,))
+    text = (FIXTURE / mvnx).read_bytes()
+    (root / mvnx).write_bytes(text[: len(text) // 2])  # cut mid-XML
+    result = couch.process(root, out)
+    assert not result.ok and result.fault[0] == "body"
+    assert "recording.mvnx" in result.fault[1] and not result.traceback
+    # the stages that do not read the IMU came from the cache
+    assert result.stages["calibrate"].status == "cached"
+    assert result.stages["chair"].status == "cached"
+    assert not (out / "processed.h5").exists()
+    summary = json.loads((out / "report" / "summary.json").read_text())
+    assert summary["ok"] is False and "recording.mvnx" in json.dumps(summary["fault"])
+
+
+@pytest.mark.parametrize("kind", ["empty", "not_watertight"])
+def test_bad_chair_scan_is_a_fault_naming_the_file(run, truth, tmp_path, kind):
+    gt, _ = truth
+    root, out = _view(tmp_path, run.output, skip=("chair_scan.obj",))
+    v, f = gt.object_vertices, gt.object_faces
+    if kind == "empty":
+        lines = ["# no geometry"]
+    else:
+        lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f[: len(f) * 2 // 3]]
+    (root / "chair_scan.obj").write_text("\n".join(lines) + "\n")
+    result = couch.process(root, out)
+    assert not result.ok and result.fault[0] == "chair", result.summary()
+    assert "chair_scan.obj" in result.fault[1] and not result.traceback
+    assert result.stages["calibrate"].status == "cached"
+    assert "chair_scan.obj" in (out / "report" / "index.html").read_text()
+
+
+def test_missing_camera_is_left_out_with_a_warning(run, truth, tmp_path):
+    gt, info = truth
+    serial = json.loads((FIXTURE / "session.json").read_text())["kinect"][1]["serial"]
+    root, out = _view(tmp_path, None, skip=(f"kinect/{serial}.mkv",))
+    result = couch.process(root, out, report=False)
+    assert result.ok, result.summary()
+    assert result.calibration.cameras and serial not in result.calibration.cameras
+    assert any(serial in w and "left out" in w for w in result.warnings)
+    data = read_processed(result.processed)
+    rows = data.quality["frame_rows"]
+    e = mpjpe(apply_transform(_truth_from_ours(result, info), data.joints.astype(np.float64)),
+              gt.joints[rows]).mean()
+    print(f"3 of 4 cameras: MPJPE {e * 100:.2f} cm")
+    assert e <= 0.03
+
+
+def test_truncated_mkv_is_used_up_to_the_cut_and_reported(run, tmp_path):
+    """A recording cut short (a full disk, a crash): its frames before the cut are used and the
+    report says the file is truncated."""
+    serial = json.loads((FIXTURE / "session.json").read_text())["kinect"][2]["serial"]
+    rel = f"kinect/{serial}.mkv"
+    root, out = _view(tmp_path, None, skip=(rel,))
+    data = (FIXTURE / rel).read_bytes()
+    (root / rel).write_bytes(data[: int(len(data) * 0.6)])
+    result = couch.process(root, out, report=False)
+    assert result.ok, result.summary()
+    assert any(serial in w and "truncated" in w for w in result.warnings)
+    assert result.body.cameras_present[:, result.body.camera_serials.index(serial)].mean() < 0.8
+
+
+def test_cli(tmp_path):
+    exe = Path(sys.executable).parent / "couch-process"
+    done = subprocess.run([str(exe), str(FIXTURE), "-o", str(tmp_path / "o"), "--stages",
+                           "calibrate", "-q"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "calibrate ran" in done.stdout.replace("  ", " ").replace("  ", " ")
+    assert (tmp_path / "o" / "report" / "index.html").is_file()
+    assert not (tmp_path / "o" / "processed.h5").exists()
+    for args, message in ((["--stages", "bogus"], "unknown stage"),
+                          (["--frames", "9:3"], "START < STOP")):
+        bad = subprocess.run([str(exe), str(FIXTURE), "-o", str(tmp_path / "o"), *args],
+                             capture_output=True, text=True, timeout=600)
+        assert bad.returncode == 2 and message in bad.stderr
+    missing = subprocess.run([str(exe), str(tmp_path / "nowhere")], capture_output=True,
+                             text=True, timeout=600)
+    assert missing.returncode == 2 and "no such session folder" in missing.stderr
+
+
+def test_bad_arguments_raise():
+    with pytest.raises(ProcessError, match="unknown stage"):
+        run_pipeline(FIXTURE, stages="fit")
+    with pytest.raises(ProcessError, match="START:STOP"):
+        run_pipeline(FIXTURE, frames="a:b")
+
+
+def test_records_are_plain_hdf5(run):
+    """The cache holds arrays and JSON, nothing pickled."""
+    files = sorted((run.output / "cache").glob("*.h5"))
+    assert {f.name.split("-")[0] for f in files} == set(STAGES)
+    for f in files:
+        with h5py.File(f) as h5:
+            json.loads(h5.attrs["fields"])
+            found: list[str] = []
+            h5.visititems(lambda name, obj, found=found: found.append(name) if isinstance(
+                obj, h5py.Dataset) and obj.dtype == object else None)
+            assert not found, f"{f}: object arrays {found}"
