@@ -97,6 +97,11 @@ class ContactConfig:
     walk_speed: float = 0.7  # m/s: a movement of the pelvis reaching this is walking ...
     stop_speed: float = 0.25  # m/s: ... from where its horizontal speed rises above this
     walk_smooth: float = 0.2  # s: Gaussian sigma on the pelvis track for those speeds
+    # a recording that starts or ends mid-walk cuts the walk short of walk_speed: a movement
+    # cut by the recording's first or last frame is walking from this speed on, unless the
+    # pelvis drops (sitting down) or rises (standing up) by edge_walk_drop during it
+    edge_walk_speed: float = 0.3  # m/s
+    edge_walk_drop: float = 0.1  # m
     min_seated: float = 0.5  # s: a pelvis contact shorter than this is no episode
     merge_gap: float = 1.0  # s: seated periods closer than this are one episode
     min_hand: float = 0.3  # s: total supporting contact of a hand that makes a hand episode
@@ -112,7 +117,7 @@ class ContactConfig:
                 raise ValueError(f"ContactConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("smooth", "speed_smooth", "min_duration", "max_gap", "walk_smooth",
                      "min_seated", "merge_gap", "min_hand", "min_lift", "lap_distance",
-                     "support_lean"):
+                     "support_lean", "edge_walk_speed", "edge_walk_drop"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ContactConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.leave_distance < self.enter_distance or self.leave_speed < self.enter_speed \
@@ -495,7 +500,9 @@ def walking(pelvis: np.ndarray, fps: float, config: ContactConfig | None = None)
     Sitting down moves the pelvis back by up to ~0.3 m at up to ~0.55 m/s, as fast as the end
     of a walk, so a speed threshold alone cannot tell them apart. A movement (horizontal speed
     above ``stop_speed``) is walking when it reaches ``walk_speed`` somewhere; all its frames
-    are walking then, so the walk ends where the subject has (nearly) stopped.
+    are walking then, so the walk ends where the subject has (nearly) stopped. A movement cut
+    by the recording's start or end needs only ``edge_walk_speed`` while the pelvis stays at
+    one height (sitting down or standing up changes it).
     """
     cfg = config or ContactConfig()
     if len(pelvis) < 2:
@@ -503,8 +510,11 @@ def walking(pelvis: np.ndarray, fps: float, config: ContactConfig | None = None)
     horizontal = _smooth(np.asarray(pelvis, np.float64)[:, [0, 2]], cfg.walk_smooth, fps)
     speed = np.linalg.norm(np.gradient(horizontal, axis=0), axis=1) * fps
     s, e = runs(speed > cfg.stop_speed)
-    fast = np.array([speed[a:b].max() >= cfg.walk_speed for a, b in zip(s, e, strict=True)],
-                    dtype=bool)
+    height = np.asarray(pelvis, np.float64)[:, 1]
+    fast = np.array([speed[a:b].max() >= cfg.walk_speed
+                     or ((a == 0 or b == len(speed)) and speed[a:b].max() >= cfg.edge_walk_speed
+                         and np.ptp(height[a:b]) < cfg.edge_walk_drop)
+                     for a, b in zip(s, e, strict=True)], dtype=bool)
     return _runs_mask(np.zeros(len(speed), bool), fast, s, e)
 
 
@@ -526,8 +536,6 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
         lean: (T,) radians the torso leans to the body's left (:func:`side_lean`); None: 0.
         hands_near: (T,2) bool, left/right hand on the chair as judged for support (looser
             thresholds than the contact flags); None: the hands' columns of ``active``.
-        hands_near: (T,2) bool, left/right hand on the chair as judged for support (looser
-            thresholds than the contact flags); None: the hands' columns of ``active``.
 
     Returns (T,) int8: 0 outside interaction episodes. An episode is a seated period (pelvis
     contact) from where the approach walk stopped to where the next walk starts. Its label is
@@ -545,8 +553,6 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
     t = len(active)
     lap = np.zeros((t, 2), bool) if hand_on_lap is None else np.asarray(hand_on_lap, bool)
     lean = np.zeros(t) if lean is None else np.asarray(lean, np.float64)
-    hand_cols = [CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand")]
-    hands = active[:, hand_cols] if hands_near is None else np.asarray(hands_near, bool)
     hand_cols = [CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand")]
     hands = active[:, hand_cols] if hands_near is None else np.asarray(hands_near, bool)
     if active.shape != (t, len(CONTACT_NAMES)) or pelvis.shape != (t, 3) \

@@ -144,9 +144,23 @@ class CameraView:
         return ok
 
 
+Occluders = tuple[np.ndarray, np.ndarray] | o3d.t.geometry.RaycastingScene
+
+
+def occluder_scene(occluders: Occluders) -> o3d.t.geometry.RaycastingScene:
+    """A ray-casting scene of ``(vertices (W,3), faces (G,3))`` (or the scene itself): build it
+    once for a static occluder and pass it to every frame's :func:`surface_distances`."""
+    if isinstance(occluders, o3d.t.geometry.RaycastingScene):
+        return occluders
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(occluders[0], np.float32)),
+                        o3d.core.Tensor(np.asarray(occluders[1], np.uint32)))
+    return scene
+
+
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
                       visible_from: np.ndarray | Sequence[CameraView] | None = None,
-                      occluders: tuple[np.ndarray, np.ndarray] | None = None,
+                      occluders: Occluders | None = None,
                       samples: int = 4000, seed: int = 0) -> SurfaceDistances:
     """Point cloud ↔ mesh distances of one frame.
 
@@ -158,7 +172,8 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
             and with views inside that camera's image) count in the surface → points
             direction, since the cameras never saw the rest. None: every sample counts.
         occluders: (vertices (W,3), faces (G,3)) of other surfaces in the scene (the chair) that
-            hide parts of the body from the cameras; used only for the visibility.
+            hide parts of the body from the cameras, or their :func:`occluder_scene`; used only
+            for the visibility.
         samples: surface samples (area-uniform) for the surface → points direction.
         seed: sampling seed.
 
@@ -174,18 +189,17 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
                   if len(pts) else np.zeros(0))
     sample, normal = sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
     if visible_from is not None:
-        if occluders is not None:
-            scene.add_triangles(o3d.core.Tensor(np.asarray(occluders[0], np.float32)),
-                                o3d.core.Tensor(np.asarray(occluders[1], np.uint32)))
-        sample = sample[_visible(scene, sample, normal, visible_from)]
+        # a separate scene: adding the occluder to the body's would rebuild the body's BVH
+        scenes = [scene] if occluders is None else [scene, occluder_scene(occluders)]
+        sample = sample[_visible(scenes, sample, normal, visible_from)]
     to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
                  else np.full(len(sample), np.nan))
     return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
 
 
-def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, normals: np.ndarray,
-             cameras: np.ndarray | Sequence[CameraView]) -> np.ndarray:
-    """(n,) bool: nothing of the scene lies between the point and at least one camera (and,
+def _visible(scenes: Sequence[o3d.t.geometry.RaycastingScene], pts: np.ndarray,
+             normals: np.ndarray, cameras: np.ndarray | Sequence[CameraView]) -> np.ndarray:
+    """(n,) bool: nothing of the scenes lies between the point and at least one camera (and,
     for a :class:`CameraView`, the point is inside its image, in its range, in front of its
     background and not seen more obliquely than its incidence limit)."""
     seen = np.zeros(len(pts), bool)
@@ -199,8 +213,8 @@ def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, normals: np
         d /= dist[:, None]
         # start just off the surface towards the camera, so the sample's own face is not hit
         origin = pts + 1e-4 * d
-        rays = np.concatenate([origin, d], axis=1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        rays = o3d.core.Tensor(np.concatenate([origin, d], axis=1).astype(np.float32))
+        hit = np.min([sc.cast_rays(rays)["t_hit"].numpy() for sc in scenes], axis=0)
         unhidden = ~(hit < dist - 1e-3)
         if view is not None:
             unhidden &= view.in_view(pts)
@@ -213,7 +227,7 @@ def _visible(scene: o3d.t.geometry.RaycastingScene, pts: np.ndarray, normals: np
 
 def chamfer(vertices: np.ndarray, faces: np.ndarray, clouds: list[np.ndarray], *,
             visible_from: np.ndarray | Sequence[CameraView] | None = None,
-            occluders: tuple[np.ndarray, np.ndarray] | None = None,
+            occluders: Occluders | None = None,
             samples: int = 4000) -> np.ndarray:
     """Per-frame symmetric chamfer distance (metres) of fitted meshes to their point clouds.
 
@@ -230,6 +244,7 @@ def chamfer(vertices: np.ndarray, faces: np.ndarray, clouds: list[np.ndarray], *
     if len(clouds) != len(verts):
         raise ValueError(f"{len(verts)} meshes but {len(clouds)} clouds")
     # Clouds differ in size per frame, so frames go one at a time through open3d's BVH.
+    occluders = occluder_scene(occluders) if occluders is not None else None
     return np.array([surface_distances(v, faces, c, visible_from=visible_from,
                                        occluders=occluders, samples=samples, seed=t).chamfer
                      if len(c) else np.nan for t, (v, c) in enumerate(zip(verts, clouds,

@@ -90,8 +90,9 @@ class ProcessConfig:
         fit: the body stage's (:class:`~couch.fitting.session.SessionFitConfig`).
         chair: the chair stage's (:class:`~couch.fitting.chair.ChairConfig`).
         contacts: the contact stage's (:class:`~couch.fitting.contacts.ContactConfig`).
-        chair_step: register the chair on every k-th row of the frame table (it is static; the
-            spread over the rows used is reported).
+        chair_frames: register the chair on at most this many rows of the frame table, evenly
+            spread (0: every row). The chair is static: a few dozen frames give its average and
+            spread and find a move between two static periods, at a fraction of the cost.
         contact_model: body model measuring contacts (the coarse one is ~10x faster and within
             millimetres of the full model's surface).
         device: torch device of the fits (``cpu``, ``cuda``).
@@ -100,13 +101,13 @@ class ProcessConfig:
     fit: SessionFitConfig = dataclasses.field(default_factory=SessionFitConfig)
     chair: ChairConfig = dataclasses.field(default_factory=ChairConfig)
     contacts: ContactConfig = dataclasses.field(default_factory=ContactConfig)
-    chair_step: int = 2
+    chair_frames: int = 40
     contact_model: str = "couch-body-coarse"
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        if self.chair_step < 1:
-            raise ValueError(f"ProcessConfig.chair_step must be >= 1, got {self.chair_step}")
+        if self.chair_frames < 0:
+            raise ValueError(f"ProcessConfig.chair_frames must be >= 0, got {self.chair_frames}")
 
 
 @dataclasses.dataclass
@@ -543,10 +544,12 @@ class _Runner:
         self._store(name, key, value)
         return value
 
-    def sync(self, extrinsics: Extrinsics) -> SessionSync:
+    def sync(self, extrinsics: Extrinsics) -> tuple[SessionSync, float]:
+        """The session synchronised (once per run) and the seconds this call took."""
+        t0 = wallclock.perf_counter()
         if self._sync is None:
             self._sync = sync_session(self.view, extrinsics=extrinsics, progress=self.progress)
-        return self._sync
+        return self._sync, wallclock.perf_counter() - t0
 
     # -- stages
     def calibrate(self) -> CalibrationResult:
@@ -611,26 +614,28 @@ class _Runner:
 
     def chair(self, ext: Extrinsics) -> ChairRegistration:
         scan = session_scan_path(self.view)
-        key = stage_key("chair", (self.cfg.chair, self.cfg.chair_step, self.cfg.fit.segmentation,
+        key = stage_key("chair", (self.cfg.chair, self.cfg.chair_frames, self.cfg.fit.segmentation,
                                   self.cfg.fit.cloud),
                         [scan, *_camera_inputs(self.files)], [self.keys["calibrate"]],
                         extra=self.frames)
 
         def compute() -> ChairRegistration:
+            the_scan = load_scan(scan, self.cfg.chair)  # a bad scan fails before the sync
+            ss, sync_s = self.sync(ext)
             t0 = wallclock.perf_counter()
-            the_scan = load_scan(scan, self.cfg.chair)  # a bad scan fails before the clouds
-            ss = self.sync(ext)
             rows = np.arange(len(ss.kinect.time))
             if self.frames is not None:
                 rows = rows[(rows >= self.frames[0]) & (rows < self.frames[1])]
-            rows = rows[:: self.cfg.chair_step]
+            if 0 < self.cfg.chair_frames < len(rows):
+                rows = rows[np.unique(np.linspace(0, len(rows) - 1, self.cfg.chair_frames)
+                                      .round().astype(int))]
             clouds = chair_clouds(self.view, ext, frames=rows, kinect=ss.kinect,
                                   tracks=ss.tracks, config=self.cfg.chair,
                                   segmentation=self.cfg.fit.segmentation, cloud=self.cfg.fit.cloud,
                                   progress=self.progress)
             took = wallclock.perf_counter() - t0
             reg = register_chair(the_scan, clouds, config=self.cfg.chair, progress=self.progress)
-            reg.seconds = {"clouds": took, **reg.seconds}
+            reg.seconds = {"sync": sync_s, "clouds": took, **reg.seconds}
             reg.warnings = clouds.warnings + reg.warnings
             if reg.moved:
                 reg.warnings.append(f"the chair moved: {len(reg.segments)} static periods; the "
@@ -647,9 +652,10 @@ class _Runner:
                         [self.keys["calibrate"], self.keys["chair"]], extra=self.frames)
 
         def compute() -> BodyResult:
-            fit = fit_session(self.view, extrinsics=ext, chair=chair_model(chair),
-                              sync=self.sync(ext), frames=self.frames, config=cfg,
-                              progress=self.progress)
+            ss, sync_s = self.sync(ext)
+            fit = fit_session(self.view, extrinsics=ext, chair=chair_model(chair), sync=ss,
+                              frames=self.frames, config=cfg, progress=self.progress)
+            fit.seconds["sync"] = sync_s  # 0 when the chair stage synchronised
             return body_result(fit)
 
         return self.stage("body", BodyResult, key, compute)

@@ -82,8 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default=None, help="torch device of the body fits (cpu, cuda)")
     ap.add_argument("--extrinsics", default=None,
                     help="an extrinsics.json to use instead of calibrating")
-    ap.add_argument("--chair-step", type=int, default=None,
-                    help="register the chair on every k-th frame (default 2)")
+    ap.add_argument("--chair-frames", type=int, default=None, metavar="N",
+                    help="register the chair on N frames spread over the session (default 40; "
+                         "0: every frame)")
     ap.add_argument("--force", action="store_true", help="ignore cached stage results")
     ap.add_argument("--no-report", action="store_true", help="do not write report/")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars or warnings")
@@ -91,10 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR if args.quiet else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     config = ProcessConfig()
-    if args.chair_step is not None:
-        if args.chair_step < 1:
-            ap.error("--chair-step must be >= 1")
-        config = ProcessConfig(chair_step=args.chair_step)
+    if args.chair_frames is not None:
+        if args.chair_frames < 0:
+            ap.error("--chair-frames must be >= 0")
+        config = ProcessConfig(chair_frames=args.chair_frames)
     if args.extrinsics is not None and not Path(args.extrinsics).is_file():
         ap.error(f"--extrinsics {args.extrinsics}: no such file")
     try:
