@@ -29,7 +29,7 @@ from couch.body.skeleton import CONTACT_NAMES
 from couch.fitting.chair import rotation_angle_deg
 from couch.fitting.metrics import mpjpe
 from couch.fitting.pipeline import STAGES, ProcessError, run_pipeline
-from couch.geometry import apply_transform
+from couch.geometry import apply_transform, fit_rigid_transform
 from couch.schema import read_processed
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"
@@ -49,23 +49,12 @@ def truth():
         (FIXTURE / "truth.json").read_text())
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(4,4) rigid transform minimising |T src - dst| over (N,3) point pairs."""
-    cs, cd = src.mean(0), dst.mean(0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = r, cd - r @ cs
-    return m
-
-
 def _truth_from_ours(result, info) -> np.ndarray:
     """(4,4) our world → the simulator's world, from the cameras' centres."""
     true = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
     serials = [s for s in result.extrinsics.cameras if s in true]
     ours = np.array([result.extrinsics.world_from_depth(s)[:3, 3] for s in serials])
-    return _kabsch(ours, np.array([true[s][:3, 3] for s in serials]))
+    return fit_rigid_transform(ours, np.array([true[s][:3, 3] for s in serials]))
 
 
 def test_fixture_is_processed(run):
