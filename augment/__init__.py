@@ -8,10 +8,28 @@ Public API so far:
   needed), put into the chair frame (metres, +Y up, floor y = 0, seat centred on x = z = 0,
   front +Z) at a plausible seat height, classified as straight / armchair / sofa, and cached.
 
-Object switch/scale, part-aware contact transfer and IK re-posing follow in the augmentation
-issue.
+- :func:`segment_parts`, :class:`ChairParts`, :class:`PartFrame`, :data:`PART_NAMES`
+  (``parts.py``): per-face seat / backrest / left and right armrest / other labels of a
+  chair-frame mesh from its geometry, with a box frame per part for part-relative coordinates.
+- :func:`transfer_contacts`, :class:`TransferResult` (``transfer.py``): part-aware transfer of
+  contact points from one chair's surface to another's (same part, same normalised position,
+  projected onto that part; nearest-surface fallback flagged per point).
+
+Object switch/scale and IK re-posing follow in the augmentation issue.
 """
 
+from couch.augment.parts import PART_NAMES, ChairParts, PartFrame, segment_parts
 from couch.augment.shapes import ShapeEntry, ShapeLibrary, load_shape_library
+from couch.augment.transfer import TransferResult, transfer_contacts
 
-__all__ = ["ShapeEntry", "ShapeLibrary", "load_shape_library"]
+__all__ = [
+    "PART_NAMES",
+    "ChairParts",
+    "PartFrame",
+    "ShapeEntry",
+    "ShapeLibrary",
+    "TransferResult",
+    "load_shape_library",
+    "segment_parts",
+    "transfer_contacts",
+]

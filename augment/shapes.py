@@ -401,17 +401,29 @@ def _back_direction(pts: np.ndarray, dA: float, seat_h: float, box: np.ndarray
     return None if best is None else best[1]
 
 
-def _has_armrests(pts: np.ndarray, normals: np.ndarray, dA: float, seat_h: float,
-                  box: np.ndarray) -> bool:
-    """Upward-facing surface :data:`ARMREST_RISE` above the seat, on both lateral sides near the
-    seat's edges (within 8 cm inside to 30 cm outside), spanning ≥ 30% of the seat depth."""
+def _armrest_tops(pts: np.ndarray, normals: np.ndarray, seat_h: float, box: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (N,) of the points that may lie on an armrest top, on the +X (the sitter's
+    left) and the -X side: upward-facing (normal·Y > 0.7), :data:`ARMREST_RISE` above the seat
+    plane ``seat_h``, beside the seat's lateral edges (8 cm inside to 30 cm outside the seat box
+    ``box`` [[xmin, zmin], [xmax, zmax]]), from 5 cm in front of the seat's rear edge to 10 cm
+    beyond its front edge. ``pts`` (N, 3) surface points, ``normals`` (N, 3) unit."""
     rise = pts[:, 1] - seat_h
     (x0, z0), (x1, z1) = box
-    depth = z1 - z0
     sel = ((normals[:, 1] > 0.7) & (rise > ARMREST_RISE[0]) & (rise < ARMREST_RISE[1])
            & (pts[:, 2] > z0 + 0.05) & (pts[:, 2] < z1 + 0.1))
-    for lo, hi in ((x1 - 0.08, x1 + 0.30), (x0 - 0.30, x0 + 0.08)):
-        side = pts[sel & (pts[:, 0] > lo) & (pts[:, 0] < hi)]
+    left = sel & (pts[:, 0] > x1 - 0.08) & (pts[:, 0] < x1 + 0.30)
+    right = sel & (pts[:, 0] > x0 - 0.30) & (pts[:, 0] < x0 + 0.08)
+    return left, right
+
+
+def _has_armrests(pts: np.ndarray, normals: np.ndarray, dA: float, seat_h: float,
+                  box: np.ndarray) -> bool:
+    """Armrest tops (:func:`_armrest_tops`) on both lateral sides, each with ≥ 0.005 m² of
+    area (``dA`` m² per sample point) spanning ≥ 30% of the seat depth."""
+    depth = box[1, 1] - box[0, 1]
+    for mask in _armrest_tops(pts, normals, seat_h, box):
+        side = pts[mask]
         if len(side) * dA < 0.005 or np.ptp(side[:, 2]) < 0.3 * depth:
             return False
     return True
