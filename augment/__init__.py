@@ -15,21 +15,48 @@ Public API so far:
   contact points from one chair's surface to another's (same part, same normalised position,
   projected onto that part; nearest-surface fallback flagged per point).
 
-Object switch/scale and IK re-posing follow in the augmentation issue.
+- :func:`smooth_offsets`, :func:`contact_targets`, :func:`reference_vertices`,
+  :func:`default_reference`, :func:`reposition`, :class:`IKConfig`, :class:`IKResult`,
+  :func:`penetration`, :data:`DISTAL_JOINTS` (``ik.py``): TRUMANS-style offset smoothing
+  (linear falloff over a window, norm-weighted blending) and batched full-body IK over all
+  frames (reach, keep the captured pose, planted feet, temporal smoothness, joint limits,
+  clipped steps with larger bounds for distal bones); deepest body-into-chair penetration.
+
+Object switch/scale follows in the augmentation issue.
 """
 
+from couch.augment.ik import (
+    DISTAL_JOINTS,
+    IKConfig,
+    IKResult,
+    contact_targets,
+    default_reference,
+    penetration,
+    reference_vertices,
+    reposition,
+    smooth_offsets,
+)
 from couch.augment.parts import PART_NAMES, ChairParts, PartFrame, segment_parts
 from couch.augment.shapes import ShapeEntry, ShapeLibrary, load_shape_library
 from couch.augment.transfer import TransferResult, transfer_contacts
 
 __all__ = [
+    "DISTAL_JOINTS",
     "PART_NAMES",
     "ChairParts",
+    "IKConfig",
+    "IKResult",
     "PartFrame",
     "ShapeEntry",
     "ShapeLibrary",
     "TransferResult",
+    "contact_targets",
+    "default_reference",
     "load_shape_library",
+    "penetration",
+    "reference_vertices",
+    "reposition",
     "segment_parts",
+    "smooth_offsets",
     "transfer_contacts",
 ]

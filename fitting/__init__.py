@@ -31,7 +31,7 @@ from couch.fitting.chair import (
 from couch.fitting.clouds import PaddedClouds, pad_clouds
 from couch.fitting.contacts import ContactConfig, Contacts, detect_contacts
 from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
-from couch.fitting.limits import joint_limit_penalty
+from couch.fitting.limits import joint_limit_excess, joint_limit_penalty
 from couch.fitting.metrics import (
     FOOT_KEYPOINTS,
     CameraView,
@@ -103,6 +103,7 @@ __all__ = [
     "foot_skate",
     "fuse_motion",
     "jitter",
+    "joint_limit_excess",
     "joint_limit_penalty",
     "load_scan",
     "mpjpe",

@@ -116,6 +116,9 @@ class ChairConfig:
         seed: base seed of the scan sampling and RANSAC.
         icp_distances: ICP max correspondence distances, coarse to fine.
         icp_iterations: per stage.
+        shift_search: the best global candidate is also refined from starts moved this far
+            (m) along each of the scan's axes, both ways (ICP's basin is narrower than a
+            repeated part's spacing); (): no search.
         crop_margin: a frame's points this near the posed scan are the chair's.
         inlier_distance: a point this near the surface is explained by the chair.
         min_points: a frame with fewer chair points is rejected (occluded).
@@ -150,6 +153,7 @@ class ChairConfig:
     seed: int = 0
     icp_distances: tuple[float, ...] = (0.05, 0.02, 0.008)
     icp_iterations: int = 30
+    shift_search: tuple[float, ...] = (0.04, 0.08)
     crop_margin: float = 0.05
     inlier_distance: float = 0.008
     min_points: int = 300
@@ -647,6 +651,27 @@ def _turned(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairCo
     return out
 
 
+def _shifted(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairConfig,
+             scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud
+             ) -> list[FrameResult]:
+    """ICP from ``start`` moved by ``shift_search`` along each of the scan's principal axes,
+    both ways: a chair made of repeated parts (an armrest like the seat's edge, a row of
+    slats) holds ICP a few centimetres off, beyond its coarsest correspondence distance."""
+    if start.pose is None or not cfg.shift_search:
+        return []
+    _, axes = np.linalg.eigh(np.cov((scan.samples - scan.centre).T))
+    out = []
+    for axis in axes.T:
+        for step in cfg.shift_search:
+            for sign in (-1.0, 1.0):
+                move = np.eye(4)
+                move[:3, 3] = sign * step * axis
+                r = track_frame(cloud, scan, start.pose @ move, cfg, scene, target)
+                if r.pose is not None:
+                    out.append(dataclasses.replace(r, method="global"))
+    return out
+
+
 def _good(r: FrameResult, cfg: ChairConfig) -> bool:
     return (r.pose is not None and r.points >= cfg.min_points and r.fitness >= cfg.min_fitness
             and r.rmse <= cfg.max_rmse)
@@ -885,7 +910,8 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
             f"{largest:.3g} m across): is the scan in metres and of this chair?")
     # a symmetric chair (a stool) fits turned about one of its axes as well, and RANSAC's
     # runs need not find those turns: try them from the best candidate, keep the best ICP
-    cands = sorted(cands + _turned(cl[best], scan, cands[0], cfg, scene, target),
+    cands = sorted(cands + _turned(cl[best], scan, cands[0], cfg, scene, target)
+                   + _shifted(cl[best], scan, cands[0], cfg, scene, target),
                    key=lambda r: (-round(r.fitness, 3), r.rmse))
     top = cands[0]
     if not _good(top, cfg):

@@ -616,16 +616,15 @@ class _Runner:
         scan = session_scan_path(self.view)
         key = stage_key("chair", (self.cfg.chair, self.cfg.chair_frames, self.cfg.fit.segmentation,
                                   self.cfg.fit.cloud),
-                        [scan, *_camera_inputs(self.files)], [self.keys["calibrate"]],
-                        extra=self.frames)
+                        [scan, *_camera_inputs(self.files)], [self.keys["calibrate"]])
 
         def compute() -> ChairRegistration:
             the_scan = load_scan(scan, self.cfg.chair)  # a bad scan fails before the sync
             ss, sync_s = self.sync(ext)
             t0 = wallclock.perf_counter()
+            # the whole session whatever --frames says: the chair is static, and more frames
+            # average better and find a move (a frame range re-uses the cached chair)
             rows = np.arange(len(ss.kinect.time))
-            if self.frames is not None:
-                rows = rows[(rows >= self.frames[0]) & (rows < self.frames[1])]
             if 0 < self.cfg.chair_frames < len(rows):
                 rows = rows[np.unique(np.linspace(0, len(rows) - 1, self.cfg.chair_frames)
                                       .round().astype(int))]

@@ -174,6 +174,23 @@ def test_rerun_resumes_from_the_cache(run, tmp_path):
     assert np.array_equal(a.contact_active, b.contact_active)
 
 
+def test_frame_range_refits_only_the_body(run, tmp_path):
+    """``frames`` restricts the fitted rows; the chair (registered on the whole session) and
+    the calibration come from the cache."""
+    out = tmp_path / "out"
+    shutil.copytree(run.output / "cache", out / "cache")
+    part = run_pipeline(FIXTURE, out, frames="10:20")
+    assert part.ok, part.summary()
+    assert [part.stages[s].status for s in STAGES] == ["cached", "cached", "ran", "ran"]
+    data = read_processed(part.processed)
+    assert list(data.quality["frame_rows"]) == list(range(10, 20))
+    full = read_processed(run.processed)
+    same = np.isin(full.quality["frame_rows"], data.quality["frame_rows"])
+    assert np.array_equal(full.object_pose, data.object_pose)
+    # the fits of the same frames agree closely (the shape is fitted to fewer clouds)
+    assert mpjpe(data.joints, full.joints[same]).mean() < 0.02
+
+
 def _view(tmp: Path, cache_from: Path | None, *, skip: tuple[str, ...] = ()) -> tuple[Path, Path]:
     """A symlinked copy of the fixture (files in ``skip`` not linked) and an output folder
     holding a copy of ``cache_from``'s cache."""
