@@ -22,9 +22,23 @@ Public API so far:
   frames (reach, keep the captured pose, planted feet, temporal smoothness, joint limits,
   clipped steps with larger bounds for distal bones); deepest body-into-chair penetration.
 
-Object switch/scale follows in the augmentation issue.
+- :func:`canonical_chair_frame`, :func:`augment_sequence`, :func:`augment_dataset`,
+  :func:`find_processed`, :class:`AugmentResult`, :class:`AugmentStats`,
+  :class:`AugmentSummary` (``dataset.py``): object switch/scale at the source chair's frame,
+  contact transfer, IK and penetration checks per sequence, and the augmented dataset
+  (``augmented.h5`` + ``summary.json``) over a local process pool; ``couch-augment``
+  (``cli.py``).
 """
 
+from couch.augment.dataset import (
+    AugmentResult,
+    AugmentStats,
+    AugmentSummary,
+    augment_dataset,
+    augment_sequence,
+    canonical_chair_frame,
+    find_processed,
+)
 from couch.augment.ik import (
     DISTAL_JOINTS,
     IKConfig,
@@ -43,6 +57,9 @@ from couch.augment.transfer import TransferResult, transfer_contacts
 __all__ = [
     "DISTAL_JOINTS",
     "PART_NAMES",
+    "AugmentResult",
+    "AugmentStats",
+    "AugmentSummary",
     "ChairParts",
     "IKConfig",
     "IKResult",
@@ -50,8 +67,12 @@ __all__ = [
     "ShapeEntry",
     "ShapeLibrary",
     "TransferResult",
+    "augment_dataset",
+    "augment_sequence",
+    "canonical_chair_frame",
     "contact_targets",
     "default_reference",
+    "find_processed",
     "load_shape_library",
     "penetration",
     "reference_vertices",

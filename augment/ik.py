@@ -36,7 +36,7 @@ import open3d as o3d
 import torch
 
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
-from couch.fitting import BodyParams, contact_runs, joint_limit_excess
+from couch.fitting import BodyParams, contact_runs, joint_limit_excess, pose_body
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 __all__ = [
@@ -145,13 +145,6 @@ def default_reference(model: BodyModel) -> np.ndarray:
     return np.asarray(ids, dtype=np.int64)
 
 
-def _posed_vertices(params: BodyParams, model: BodyModel) -> np.ndarray:
-    with torch.no_grad():
-        return model(betas=params.betas[None], global_orient=params.global_orient,
-                     body_pose=params.body_pose, transl=params.transl
-                     ).vertices.double().cpu().numpy()
-
-
 def reference_vertices(params: BodyParams, model: BodyModel, contact_points: np.ndarray,
                        vertices: np.ndarray | None = None) -> np.ndarray:
     """The body vertex that carries each part's contact, per frame.
@@ -176,7 +169,7 @@ def reference_vertices(params: BodyParams, model: BodyModel, contact_points: np.
     if pts.shape != (n, len(CONTACT_NAMES), 3):
         raise ValueError(f"contact_points must be ({n}, {len(CONTACT_NAMES)}, 3), got "
                          f"{pts.shape}")
-    v = _posed_vertices(params, model) if vertices is None else np.asarray(vertices)
+    v = pose_body(model, params)[0] if vertices is None else np.asarray(vertices)
     ref = np.repeat(default_reference(model)[None], n, axis=0)
     t = np.arange(n)
     for k, name in enumerate(CONTACT_NAMES):
@@ -219,7 +212,7 @@ def contact_targets(params: BodyParams, model: BodyModel, source_points: np.ndar
     act = np.asarray(active, dtype=bool)
     src = np.where(act[..., None], np.asarray(source_points, np.float64), np.nan)
     new = np.where(act[..., None], np.asarray(new_points, np.float64), np.nan)
-    verts = _posed_vertices(params, model)
+    verts = pose_body(model, params)[0]
     ref = reference_vertices(params, model, src, verts)
     offsets = smooth_offsets(np.nan_to_num(new - src), act, window)
     base = np.take_along_axis(verts, ref[..., None], axis=1)  # (T, 5, 3)
@@ -496,7 +489,7 @@ def penetration(params: BodyParams, model: BodyModel, chair_vertices: np.ndarray
     out = np.zeros(n)
     for a in range(0, n, chunk):
         b = min(n, a + chunk)
-        v = _posed_vertices(params.frames(slice(a, b)), model).astype(np.float32)
+        v = pose_body(model, params.frames(slice(a, b)))[0].astype(np.float32)
         sd = scene.compute_signed_distance(o3d.core.Tensor(v.reshape(-1, 3))).numpy()
         out[a:b] = np.maximum(0.0, -sd.reshape(b - a, -1).min(axis=1))
     return out

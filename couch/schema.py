@@ -153,21 +153,33 @@ def write_processed(path: str | os.PathLike, session: ProcessedSession) -> None:
     path = Path(path)
     validate(session, str(path))
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
-        h5.attrs["schema_version"] = SCHEMA_VERSION
-        h5.attrs["couch_version"] = session.couch_version
-        h5.attrs["session"] = session.session
-        h5.attrs["fps"] = float(session.fps)
-        for f in FIELDS:
-            value = getattr(session, f.attr)
-            if f.dtype == "str":
-                h5.create_dataset(f.path, data=value, dtype=h5py.string_dtype())
-                continue
-            arr = np.ascontiguousarray(value, dtype=f.dtype)
-            big = arr.size >= 1024
-            h5.create_dataset(f.path, data=arr, compression="gzip" if big else None,
-                              compression_opts=4 if big else None, shuffle=big)
-        for name, arr in session.quality.items():
-            h5.create_dataset(f"/quality/{name}", data=np.asarray(arr))
+        write_session_group(h5, session, validated=True)
+
+
+def write_session_group(group: h5py.Group, session: ProcessedSession, *,
+                        validated: bool = False) -> None:
+    """Write ``session`` into an open HDF5 file or group: its attributes (``schema_version``,
+    ``couch_version``, ``session``, ``fps``) and every :data:`FIELDS` key plus ``quality/*``
+    relative to ``group`` (e.g. one group per sequence of an augmented dataset). Validates
+    first unless ``validated``. Read back with :func:`read_session_group`."""
+    if not validated:
+        validate(session, f"{group.file.filename}:{group.name}")
+    group.attrs["schema_version"] = SCHEMA_VERSION
+    group.attrs["couch_version"] = session.couch_version
+    group.attrs["session"] = session.session
+    group.attrs["fps"] = float(session.fps)
+    for f in FIELDS:
+        key = f.path.lstrip("/")
+        value = getattr(session, f.attr)
+        if f.dtype == "str":
+            group.create_dataset(key, data=value, dtype=h5py.string_dtype())
+            continue
+        arr = np.ascontiguousarray(value, dtype=f.dtype)
+        big = arr.size >= 1024
+        group.create_dataset(key, data=arr, compression="gzip" if big else None,
+                             compression_opts=4 if big else None, shuffle=big)
+    for name, arr in session.quality.items():
+        group.create_dataset(f"quality/{name}", data=np.asarray(arr))
 
 
 def read_processed(path: str | os.PathLike) -> ProcessedSession:
@@ -185,32 +197,41 @@ def read_processed(path: str | os.PathLike) -> ProcessedSession:
     except OSError as e:
         raise SchemaError(f"{path}: not a readable HDF5 file (truncated or corrupted?): {e}") from e
     with h5:
-        attrs = dict(h5.attrs)
-        missing_attrs = [a for a in ("schema_version", "session", "fps") if a not in attrs]
-        if missing_attrs:
-            raise SchemaError(f"{path}: missing file attributes {missing_attrs}; not a couch "
-                              "processed session")
-        version = int(attrs["schema_version"])
-        if version > SCHEMA_VERSION:
-            raise SchemaError(f"{path}: schema_version {version} is newer than this couch "
-                              f"({__version__}) reads ({SCHEMA_VERSION}); upgrade couch")
-        missing = [f.path for f in FIELDS if f.path not in h5]
-        if missing:
-            raise SchemaError(f"{path}: missing keys {missing}")
-        values: dict[str, Any] = {}
-        for f in FIELDS:
-            try:
-                data = h5[f.path][()]
-            except (OSError, KeyError, ValueError) as e:
-                raise SchemaError(f"{path}: cannot read '{f.path}' ({e})") from e
-            if f.dtype == "str":
-                data = data.decode() if isinstance(data, bytes) else tuple(
-                    d.decode() if isinstance(d, bytes) else str(d) for d in data)
-            values[f.attr] = data
-        quality = {k: h5["quality"][k][()] for k in h5["quality"]} if "quality" in h5 else {}
+        return read_session_group(h5, str(path))
+
+
+def read_session_group(group: h5py.Group, where: str | None = None) -> ProcessedSession:
+    """Read and validate a session written by :func:`write_session_group` (a whole processed
+    file or one group of an augmented dataset); errors name ``where`` (default: file:group)."""
+    where = where or f"{group.file.filename}:{group.name}"
+    attrs = dict(group.attrs)
+    missing_attrs = [a for a in ("schema_version", "session", "fps") if a not in attrs]
+    if missing_attrs:
+        raise SchemaError(f"{where}: missing file attributes {missing_attrs}; not a couch "
+                          "processed session")
+    version = int(attrs["schema_version"])
+    if version > SCHEMA_VERSION:
+        raise SchemaError(f"{where}: schema_version {version} is newer than this couch "
+                          f"({__version__}) reads ({SCHEMA_VERSION}); upgrade couch")
+    keys = {f.path: f.path.lstrip("/") for f in FIELDS}
+    missing = [f.path for f in FIELDS if keys[f.path] not in group]
+    if missing:
+        raise SchemaError(f"{where}: missing keys {missing}")
+    values: dict[str, Any] = {}
+    for f in FIELDS:
+        try:
+            data = group[keys[f.path]][()]
+        except (OSError, KeyError, ValueError) as e:
+            raise SchemaError(f"{where}: cannot read '{f.path}' ({e})") from e
+        if f.dtype == "str":
+            data = data.decode() if isinstance(data, bytes) else tuple(
+                d.decode() if isinstance(d, bytes) else str(d) for d in data)
+        values[f.attr] = data
+    quality = ({k: group["quality"][k][()] for k in group["quality"]}
+               if "quality" in group else {})
     session = ProcessedSession(
         session=str(attrs["session"]), fps=float(attrs["fps"]), quality=quality,
         couch_version=str(attrs.get("couch_version", "unknown")), schema_version=version,
         **values)
-    validate(session, str(path))
+    validate(session, where)
     return session

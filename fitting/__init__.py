@@ -17,6 +17,7 @@ parts: :mod:`~couch.fitting.params`, :mod:`~couch.fitting.clouds`, :mod:`~couch.
 from couch.fitting.body import (
     BodyFit,
     BodyFitConfig,
+    cached_model,
     fit_bodies,
     fit_bodies_frame_by_frame,
 )
@@ -61,6 +62,7 @@ from couch.fitting.session import (
     SessionFitError,
     WorldAlignment,
     fit_session,
+    pose_body,
 )
 from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
@@ -91,6 +93,7 @@ __all__ = [
     "StageRun",
     "SurfaceDistances",
     "WorldAlignment",
+    "cached_model",
     "chamfer",
     "contact_runs",
     "detect_contacts",
@@ -108,6 +111,7 @@ __all__ = [
     "load_scan",
     "mpjpe",
     "pad_clouds",
+    "pose_body",
     "register_chair",
     "register_session_chair",
     "run_pipeline",

@@ -264,9 +264,10 @@ def _yaw_matrix(yaw: np.ndarray | float) -> np.ndarray:
                      np.stack([-s, z, c], -1)], -2)
 
 
-def _posed(model: BodyModel, params: BodyParams, batch: int = 64
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """(T,V,3) vertices and (T,24,3) joints of ``params`` (no grad, float64 out)."""
+def pose_body(model: BodyModel, params: BodyParams, batch: int = 64
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(T,V,3) vertices and (T,24,3) joints (world metres) of ``params`` posed by ``model``
+    (no grad, float64 out; ``batch`` frames at a time bound the memory)."""
     verts, joints = [], []
     for a in range(0, params.num_frames, batch):
         sl = slice(a, a + batch)
@@ -432,7 +433,7 @@ def align_imu(clouds: Sequence[FusedCloud], imu_params: BodyParams, model: BodyM
         raise SessionFitError("no frame has person points: the IMU cannot be aligned")
     use = np.argsort(-counts, kind="stable")[:frames]
     use = use[counts[use] > 0]
-    verts, _ = _posed(model, imu_params.frames(use))
+    verts, _ = pose_body(model, imu_params.frames(use))
     rng = np.random.default_rng(seed)
     trees, pts = [], []
     for k, i in enumerate(use):
@@ -521,7 +522,7 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
     """
     cfg = config or SessionFitConfig()
     t = params.num_frames
-    verts = _posed(model, params)[0] if vertices is None else np.asarray(vertices, np.float64)
+    verts = pose_body(model, params)[0] if vertices is None else np.asarray(vertices, np.float64)
     seg = model.weights.cpu().numpy().argmax(1)  # (V,) the joint moving each vertex most
     normals = vertex_normals(verts, model.faces)
     # facing a camera that has the vertex in its image
@@ -666,7 +667,7 @@ def fit_session(session_dir: str | os.PathLike, *,
                                                     np.asarray(chair.vertices, np.float64)),
                                     np.asarray(chair.faces)))
     measure = cached_model(cfg.error_model, bcfg.device, bcfg.dtype)
-    fit_verts, _ = _posed(measure, fit.params)
+    fit_verts, _ = pose_body(measure, fit.params)
     present = ss.kinect.frame_table[rows] >= 0
     fit_chamfer = _chamfers(fit_verts, measure.faces, clouds, views, present, occluders,
                             bcfg.error_samples)
@@ -706,8 +707,8 @@ def fit_session(session_dir: str | os.PathLike, *,
         fused = fit.params
     seconds["fusion"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    joints = _posed(full, fused)[1]
-    fused_chamfer = _chamfers(_posed(measure, fused)[0], measure.faces, clouds, views, present,
+    joints = pose_body(full, fused)[1]
+    fused_chamfer = _chamfers(pose_body(measure, fused)[0], measure.faces, clouds, views, present,
                               occluders, bcfg.error_samples)
     seconds["errors"] += time.perf_counter() - t0
     for m in warnings:

@@ -48,7 +48,7 @@ SESSIONS = {
 
 
 def _posed(params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
-    from couch.fitting.session import _posed as posed
+    from couch.fitting.session import pose_body as posed
 
     return posed(cached_model("couch-body"), params)
 
@@ -106,7 +106,7 @@ def test_body_accuracy_against_ground_truth(sim, name):
     e_imu = mpjpe(imu_joints, true_joints).mean()
     e_fit = mpjpe(sf.fit.joints, true_joints).mean()
     e_fused = mpjpe(sf.joints, true_joints).mean()
-    from couch.fitting.session import _posed as posed
+    from couch.fitting.session import pose_body as posed
 
     model = cached_model("couch-body")
     true_params = BodyParams.from_processed(truth).frames(rows)
@@ -159,8 +159,8 @@ def _body_params(t: int, rng: np.random.Generator) -> BodyParams:
 def test_alignment_recovers_a_known_heading_and_origin():
     """Synthetic: the suit's body in its own world; the 'clouds' are that body's vertices
     turned by 70° about +Y and moved; the heading search and the joint refinement find both."""
-    from couch.fitting.session import _posed as posed
     from couch.fitting.session import _yaw_matrix
+    from couch.fitting.session import pose_body as posed
 
     rng = np.random.default_rng(0)
     coarse = cached_model("couch-body-coarse")
