@@ -586,12 +586,11 @@ class _Runner:
                     ext = calibrate_session(self.view, given=given)
             else:
                 ext = calibrate_session(self.view, given=given)
-            tmp = self.cache / "extrinsics.tmp.json"
             self.cache.mkdir(parents=True, exist_ok=True)
-            write_extrinsics(tmp, ext)
-            text = tmp.read_text(encoding="utf-8")
-            tmp.unlink()
-            return CalibrationResult(cameras=keep, dropped=dropped, extrinsics_json=text,
+            write_extrinsics(self.cache / "extrinsics.json", ext)  # extrinsics() reads it back
+            return CalibrationResult(cameras=keep, dropped=dropped,
+                                     extrinsics_json=(self.cache / "extrinsics.json").read_text(
+                                         encoding="utf-8"),
                                      warnings=warnings)
 
         cal = self.stage("calibrate", CalibrationResult, key, compute)
@@ -606,10 +605,13 @@ class _Runner:
         return self.view
 
     def extrinsics(self, cal: CalibrationResult) -> Extrinsics:
-        self.cache.mkdir(parents=True, exist_ok=True)
+        """The calibration's poses, through ``cache/extrinsics.json`` (rewritten from the
+        record when the stage came from the cache)."""
         path = self.cache / "extrinsics.json"
-        with atomic_path(path) as tmp:
-            tmp.write_text(cal.extrinsics_json, encoding="utf-8")
+        if not path.is_file() or path.read_text(encoding="utf-8") != cal.extrinsics_json:
+            self.cache.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp:
+                tmp.write_text(cal.extrinsics_json, encoding="utf-8")
         return read_extrinsics(path)
 
     def chair(self, ext: Extrinsics) -> ChairRegistration:

@@ -23,7 +23,7 @@ import torch
 from couch.augment import augment_dataset, canonical_chair_frame
 from couch.augment.cli import main
 from couch.body import load_body_model
-from couch.fitting import BodyParams
+from couch.fitting import BodyParams, pose_body
 from couch.fitting.body import cached_model
 from couch.fitting.metrics import foot_points, foot_skate
 from couch.geometry import apply_transform
@@ -129,10 +129,7 @@ def test_reach(run):
 
 
 def _posed(model, session):
-    p = BodyParams.from_processed(session)
-    with torch.no_grad():
-        return model(betas=torch.as_tensor(p.betas[None]), global_orient=p.global_orient,
-                     body_pose=p.body_pose, transl=p.transl).vertices.numpy()
+    return pose_body(model, BodyParams.from_processed(session))[0]
 
 
 def test_skate_and_jumps(run):

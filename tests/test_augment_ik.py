@@ -36,7 +36,7 @@ from couch.augment import (
     smooth_offsets,
 )
 from couch.body import load_body_model
-from couch.fitting import BodyParams
+from couch.fitting import BodyParams, pose_body
 from couch.fitting.body import cached_model
 from couch.fitting.limits import joint_limit_penalty
 from couch.fitting.metrics import foot_points, foot_skate
@@ -146,10 +146,7 @@ def case():
 
 
 def _posed(model, params):
-    with torch.no_grad():
-        out = model(betas=params.betas[None], global_orient=params.global_orient,
-                    body_pose=params.body_pose, transl=params.transl)
-    return out.vertices.numpy(), out.joints.numpy()
+    return pose_body(model, params)
 
 
 def test_targets_are_offset_reference_points(case):
