@@ -13,7 +13,10 @@ Public API so far:
   chair-frame mesh from its geometry, with a box frame per part for part-relative coordinates.
 - :func:`transfer_contacts`, :class:`TransferResult` (``transfer.py``): part-aware transfer of
   contact points from one chair's surface to another's (same part, same normalised position,
-  projected onto that part; nearest-surface fallback flagged per point).
+  projected onto that part; nearest-surface fallback flagged per point), or in metres relative
+  to the sitter's place on the new chair (:func:`sitter_shift`); :func:`contact_parts`.
+- :class:`SignedDistanceGrid` (``sdf.py``): a chair's signed distance on a grid, queried in
+  numpy or differentiably in torch (the IK's penetration term, occupancy for synthesis).
 
 - :func:`smooth_offsets`, :func:`contact_targets`, :func:`reference_vertices`,
   :func:`default_reference`, :func:`reposition`, :class:`IKConfig`, :class:`IKResult`,
@@ -51,8 +54,9 @@ from couch.augment.ik import (
     smooth_offsets,
 )
 from couch.augment.parts import PART_NAMES, ChairParts, PartFrame, segment_parts
+from couch.augment.sdf import SignedDistanceGrid
 from couch.augment.shapes import ShapeEntry, ShapeLibrary, load_shape_library
-from couch.augment.transfer import TransferResult, transfer_contacts
+from couch.augment.transfer import TransferResult, contact_parts, sitter_shift, transfer_contacts
 
 __all__ = [
     "DISTAL_JOINTS",
@@ -66,10 +70,12 @@ __all__ = [
     "PartFrame",
     "ShapeEntry",
     "ShapeLibrary",
+    "SignedDistanceGrid",
     "TransferResult",
     "augment_dataset",
     "augment_sequence",
     "canonical_chair_frame",
+    "contact_parts",
     "contact_targets",
     "default_reference",
     "find_processed",
@@ -78,6 +84,7 @@ __all__ = [
     "reference_vertices",
     "reposition",
     "segment_parts",
+    "sitter_shift",
     "smooth_offsets",
     "transfer_contacts",
 ]

@@ -6,18 +6,25 @@ Per (sequence, shape) pair, :func:`augment_sequence`:
    (:func:`canonical_chair_frame`: seat region, its minimum-area rectangle for the yaw, the
    backrest for the front; rotation about +Y only, origin at the seat centre on the floor);
 2. places the new shape (optionally uniformly scaled about that origin, so the floor stays at
-   y = 0) at the same chair frame;
+   y = 0) at that chair frame, moved so that the sitter keeps their place
+   (:func:`~couch.augment.transfer.sitter_shift`: seat fronts aligned, the inner edge of the
+   armrest the hands held longest aligned, the pelvis kept inside the new seat);
 3. moves every active contact of the source with
    :func:`~couch.augment.transfer.transfer_contacts` (source parts from the source chair, target
-   parts from the new shape, both by :func:`~couch.augment.parts.segment_parts`);
+   parts from the new shape, both by :func:`~couch.augment.parts.segment_parts`; metric
+   positions relative to the sitter); a contact that would move more than ``max_transfer``
+   (a sofa's far armrest) is dropped;
 4. turns the offsets (new − old) into smoothed IK targets (:func:`~couch.augment.ik
    .contact_targets`, window ``IKConfig.window`` = 30 frames) and re-poses the body
    (:func:`~couch.augment.ik.reposition`) with the feet planted where ``quality/floor_active``
    says, or else where the source's heel and toe are within 5 cm of the floor and slower than
-   0.15 m/s;
+   0.15 m/s, and body vertices pushed out of the new chair (its
+   :class:`~couch.augment.sdf.SignedDistanceGrid`);
 5. measures the body's penetration into the new chair (:func:`~couch.augment.ik.penetration`)
-   and rejects the result when its 95th percentile over frames exceeds ``max_penetration`` or
-   when the 95th percentile of the reach error over the contact frames exceeds ``max_reach``.
+   and rejects the result when its 95th percentile over frames exceeds ``max_penetration``,
+   when the 95th percentile of the reach error over the contact frames exceeds ``max_reach``
+   (or its median half of it: the issue's 1 cm median / 2 cm 95th percentile),
+   or when the largest joint step between frames exceeds ``max_jump`` times the source's.
 
 :func:`augment_dataset` maps that over ``per_sequence`` seeded shape draws per processed file on a
 local process pool and writes ``augmented.h5`` (one group per kept pair,
@@ -54,7 +61,8 @@ from tqdm import tqdm
 from couch import __version__
 from couch.atomic import atomic_path
 from couch.augment.ik import IKConfig, contact_targets, penetration, reposition
-from couch.augment.parts import segment_parts
+from couch.augment.parts import PART_NAMES, segment_parts
+from couch.augment.sdf import SignedDistanceGrid
 from couch.augment.shapes import (
     _YAW_TO_BACK_NEG_Z,
     ShapeEntry,
@@ -65,10 +73,10 @@ from couch.augment.shapes import (
     _surface_samples,
     load_shape_library,
 )
-from couch.augment.transfer import transfer_contacts
-from couch.body import BodyModel
+from couch.augment.transfer import contact_parts, sitter_shift, transfer_contacts
+from couch.body import CONTACT_NAMES, BodyModel
 from couch.fitting import BodyParams, cached_model, foot_points, foot_skate, pose_body
-from couch.geometry import apply_transform, invert_transform
+from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.schema import SCHEMA_VERSION, ProcessedSession, read_processed, write_session_group
 
 __all__ = [
@@ -178,7 +186,11 @@ class AugmentStats:
     (m/frame); ``penetration_p95_before``/``penetration_p95``: 95th percentile over frames of
     the deepest body point inside the source / new chair; ``fallback_contacts``: transferred
     contact points that fell back to the nearest surface (part missing on the new chair);
-    ``contact_frames``: active (frame, part) pairs; ``iterations``; ``seconds`` wall time.
+    ``dropped_contacts``: (frame, part) contacts not made on the new chair because their
+    transferred point lay over ``max_transfer`` from the sitter's; ``shift``: where the sitter
+    sits on the new chair relative to the old (chair frame, m, :func:`~couch.augment.transfer
+    .sitter_shift`); ``contact_frames``: active (frame, part) pairs kept; ``iterations``;
+    ``seconds`` wall time.
     """
 
     reach_median: float = math.nan
@@ -190,6 +202,8 @@ class AugmentStats:
     penetration_p95_before: float = math.nan
     penetration_p95: float = math.nan
     fallback_contacts: int = 0
+    dropped_contacts: int = 0
+    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
     contact_frames: int = 0
     iterations: int = 0
     seconds: float = 0.0
@@ -199,7 +213,9 @@ class AugmentStats:
 class AugmentResult:
     """What :func:`augment_sequence` returns: the augmented ``session`` (also when rejected, for
     inspection), its ``stats``, and ``rejected``: None, or ``"<kind>: <details>"`` with kind
-    ``penetration`` or ``reach`` (``error`` from :func:`augment_dataset` when it raised)."""
+    ``penetration``, ``reach`` or ``jump`` (``error`` from :func:`augment_dataset` when it
+    raised)."""
+
 
     session: ProcessedSession | None
     stats: AugmentStats
@@ -234,13 +250,17 @@ def _jump(joints: np.ndarray) -> float:
 def augment_sequence(session: ProcessedSession, shape: ShapeEntry, *, scale: float = 1.0,
                      rng: np.random.Generator | None = None, ik_config: IKConfig | None = None,
                      max_penetration: float = 0.02, max_reach: float = 0.02,
+                     max_transfer: float = 0.25, max_jump: float = 1.1,
                      model: BodyModel | None = None) -> AugmentResult:
     """Swap the chair of ``session`` for ``shape`` (scaled by ``scale``) and re-pose the body.
 
     See the module doc for the steps. ``rng`` is accepted for API stability (every step is
     deterministic today); ``ik_config`` configures :func:`~couch.augment.ik.reposition` (its
     ``window`` is the offset falloff); ``max_penetration``/``max_reach`` (m) are the rejection
-    thresholds on the 95th percentiles; ``model`` defaults to the cached coarse body model.
+    thresholds on the 95th percentiles; ``max_transfer`` (m) how far a contact may move
+    relative to the sitter before it is dropped; ``max_jump`` rejects a result whose largest
+    frame-to-frame joint step exceeds this multiple of the source's; ``model`` defaults to the
+    cached coarse body model.
 
     Returns:
         :class:`AugmentResult`; its session is named ``<source>__<shape id>`` with
@@ -266,17 +286,34 @@ def augment_sequence(session: ProcessedSession, shape: ShapeEntry, *, scale: flo
     v_new = np.asarray(shape.vertices, np.float64) * float(scale)
     f_new = np.asarray(shape.faces, np.int64)
 
-    # 3. Contacts, part to part.
+    # 3. Where the sitter sits on the new chair, then the contacts, part to part.
     act = np.asarray(session.contact_active, dtype=bool)
     src_points = np.asarray(session.contact_points, np.float64)
     new_points = np.full((n, act.shape[1], 3), np.nan)
-    fallback = 0
+    parts_src, parts_new = segment_parts(v_src, f_src), segment_parts(v_new, f_new)
+    local = apply_transform(chair_from_world, src_points[act]) if act.any() \
+        else np.zeros((0, 3))
+    which = np.broadcast_to(np.arange(act.shape[1]), act.shape)[act]
+    hands = np.isin(which, [CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand")])
+    held = Counter(PART_NAMES[c] for c in contact_parts(local[hands], parts_src,
+                                                         (v_src, f_src)))
+    pelvis = local[which == CONTACT_NAMES.index("pelvis")]
+    shift = sitter_shift(parts_src, parts_new, dict(held),
+                         float(np.median(pelvis[:, 0])) if len(pelvis) else None)
+    world_from_chair = world_from_chair @ make_transform(np.eye(3), -shift)
+    fallback = dropped = 0
     if act.any():
-        tr = transfer_contacts(apply_transform(chair_from_world, src_points[act]),
-                               segment_parts(v_src, f_src), (v_src, f_src),
-                               segment_parts(v_new, f_new), (v_new, f_new))
+        tr = transfer_contacts(local, parts_src, (v_src, f_src), parts_new, (v_new, f_new),
+                               shift=shift)
         new_points[act] = apply_transform(world_from_chair, tr.points)
         fallback = int(tr.fallback.sum())
+        # A contact whose part is far from where the sitter now is (a sofa's other armrest)
+        # is not made on the new chair: that hand stays as captured, off the chair.
+        far = np.zeros_like(act)
+        far[act] = tr.distance_moved > max_transfer
+        dropped = int(far.sum())
+        act = act & ~far
+        new_points[far] = np.nan
 
     # 4. Targets and IK.
     params = BodyParams.from_processed(session)
@@ -284,12 +321,13 @@ def augment_sequence(session: ProcessedSession, shape: ShapeEntry, *, scale: flo
     feet0 = foot_points(v0, model.keypoint_ids)
     plant = _planted(session, feet0)
     targets, ref = contact_targets(params, model, src_points, new_points, act, cfg.window)
-    ik = reposition(params, model, targets, reference=ref, plant_feet=plant, config=cfg)
+    chair_world = apply_transform(world_from_chair, v_new)
+    ik = reposition(params, model, targets, reference=ref, plant_feet=plant, config=cfg,
+                    obstacle=SignedDistanceGrid.from_mesh(chair_world, f_new))
     v1, j1 = pose_body(model, ik.params)
     del v0
 
     # 5. Penetration and checks.
-    chair_world = apply_transform(world_from_chair, v_new)
     pen = penetration(ik.params, model, chair_world, f_new)
     pen0 = penetration(params, model, src_world, f_src)
     reach = ik.reach_error[act & np.isfinite(targets[..., 0])]
@@ -301,7 +339,9 @@ def augment_sequence(session: ProcessedSession, shape: ShapeEntry, *, scale: flo
         jump_before=_jump(j0), jump_after=_jump(j1),
         penetration_p95_before=float(np.percentile(pen0, 95)) if n else 0.0,
         penetration_p95=float(np.percentile(pen, 95)) if n else 0.0,
-        fallback_contacts=fallback, contact_frames=int(act.sum()), iterations=ik.iterations)
+        fallback_contacts=fallback, dropped_contacts=dropped,
+        shift=tuple(float(x) for x in shift), contact_frames=int(act.sum()),
+        iterations=ik.iterations)
     rejected = None
     if stats.penetration_p95 > max_penetration:
         rejected = (f"penetration: 95th percentile {100 * stats.penetration_p95:.2f} cm > "
@@ -309,6 +349,12 @@ def augment_sequence(session: ProcessedSession, shape: ShapeEntry, *, scale: flo
     elif reach.size and stats.reach_p95 > max_reach:
         rejected = (f"reach: 95th percentile {100 * stats.reach_p95:.2f} cm > "
                     f"{100 * max_reach:.2f} cm")
+    elif reach.size and stats.reach_median > max_reach / 2:
+        rejected = (f"reach: median {100 * stats.reach_median:.2f} cm > "
+                    f"{50 * max_reach:.2f} cm")
+    elif stats.jump_after > max_jump * stats.jump_before:
+        rejected = (f"jump: largest joint step {100 * stats.jump_after:.1f} cm/frame > "
+                    f"{max_jump:.2f} x the source's {100 * stats.jump_before:.1f} cm/frame")
 
     joints = np.asarray(session.joints, np.float64) + (j1 - j0)[:, :24]
     out = dataclasses.replace(

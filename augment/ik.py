@@ -35,6 +35,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
+from couch.augment.sdf import SignedDistanceGrid
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
 from couch.fitting import BodyParams, contact_runs, joint_limit_excess, pose_body
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -246,6 +247,10 @@ class IKConfig:
         smooth_weight: cost per rad² (and per cm² for translation, times 0.01) of the change of
             the correction between consecutive frames.
         limit_weight: cost per rad² of joint-limit excess beyond the source's own.
+        penetration_weight: cost per cm² of depth of each body vertex inside the obstacle
+            (``reposition(obstacle=...)``), deeper than ``penetration_margin``.
+        penetration_margin: depth (m) tolerated before the cost starts (a seated body's
+            buttocks press a few mm into a rigid seat model).
         window: default falloff window (frames) for callers building targets.
         tolerance: stop early when every reach error is below this (m) and the objective
             improved by less than ``rel_tolerance`` (relative) in the last iteration.
@@ -265,6 +270,8 @@ class IKConfig:
     plant_weight: float = 10.0
     smooth_weight: float = 20.0
     limit_weight: float = 1000.0
+    penetration_weight: float = 1.0
+    penetration_margin: float = 0.002
     window: int = 30
     tolerance: float = 0.002
     rel_tolerance: float = 1e-4
@@ -309,6 +316,7 @@ def _joint_weights(cfg: IKConfig) -> tuple[np.ndarray, np.ndarray]:
 
 def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
                reference: np.ndarray | None = None, plant_feet: np.ndarray | None = None,
+               obstacle: SignedDistanceGrid | None = None,
                config: IKConfig | None = None) -> IKResult:
     """Full-body IK over all frames at once: move each part's reference vertex to its target.
 
@@ -324,7 +332,11 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
     - smoothness: |δ_{t+1} − δ_t|² and |Δtransl_{t+1} − Δtransl_t|²;
     - joint limits: the squared excess of each Euler angle beyond its range
       (:func:`couch.fitting.limits.joint_limit_excess`) minus the source's own excess (a
-      captured pose outside a range is not pulled in, and not pushed further out).
+      captured pose outside a range is not pulled in, and not pushed further out);
+    - penetration (with ``obstacle``): for every body vertex, the squared depth (cm²) by which
+      it lies inside the obstacle beyond ``penetration_margin`` (a limb brushing the new chair
+      is moved out rather than the sample thrown away); a part's own contact vertices are exempt
+      on the frames it has a target (a palm or the buttocks press onto the surface they touch).
 
     Args:
         params: the captured motion (T frames, world frame).
@@ -335,6 +347,7 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
             :func:`contact_targets` / :func:`reference_vertices`); default
             :func:`default_reference` (the vertex nearest each contact set's centroid).
         plant_feet: (T, 2) bool, left/right foot planted (kept at its source position).
+        obstacle: the new chair's :class:`~couch.augment.sdf.SignedDistanceGrid`, world frame.
         config: :class:`IKConfig`.
 
     Returns:
@@ -378,6 +391,13 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
         foot_ids = torch.as_tensor([[model.keypoint_ids[k] for k in side]
                                     for side in FOOT_POINTS], device=dev)  # (2, P)
     plant_t = ten(plant)
+    free = None
+    if obstacle is not None:
+        exempt = np.zeros((n, model.num_vertices), bool)
+        for k, name in enumerate(CONTACT_NAMES):
+            ids = np.asarray(model.contact_vertices[name])
+            exempt[np.ix_(has[:, k], ids)] = True
+        free = ten(~exempt)
     with torch.no_grad():
         src_out = model(betas=betas, global_orient=rot_src[:, :1], body_pose=rot_src[:, 1:],
                         transl=transl_src)
@@ -413,6 +433,9 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
                                                       ).square().sum()
         excess = torch.relu(joint_limit_excess(rot[:, 1:]) - excess_src)
         loss = loss + cfg.limit_weight * excess.square().sum()
+        if obstacle is not None and cfg.penetration_weight > 0:
+            depth = torch.relu(-obstacle.torch_query(verts) - cfg.penetration_margin)
+            loss = loss + cfg.penetration_weight * ((depth / _CM).square() * free).sum()
         return loss / n, err.detach()
 
     def clipped(prev: torch.Tensor) -> None:

@@ -21,6 +21,7 @@ from couch.augment import (
     ChairParts,
     load_shape_library,
     segment_parts,
+    sitter_shift,
     transfer_contacts,
 )
 from couch.tools.sim.chairs import Chair, make_chair, random_chair_spec
@@ -202,3 +203,76 @@ def test_shapenet_library_chair_as_target(tmp_path: Path,
     assert left[0] > 0 > right[0]                          # sitter's left is +X
     assert abs(seat[1] - target.seat_height) < 0.02 and np.hypot(seat[0], seat[2]) < 0.05
     assert back[2] < seat[2] and back[1] > seat[1]         # backrest behind, above the seat
+
+
+@pytest.fixture(scope="module")
+def sofa() -> tuple[Chair, ChairParts]:
+    c = _chairs("sofa", 13, 1)[0]
+    return c, segment_parts(c.vertices, c.faces)
+
+
+def test_sitter_shift_keeps_the_held_armrest_and_the_seat_front(
+        armchairs: list[tuple[Chair, ChairParts]], sofa: tuple[Chair, ChairParts]) -> None:
+    """A right-armrest sitter moves with the sofa's right armrest; fronts align (from specs)."""
+    (a, pa), _ = armchairs
+    s, ps = sofa
+    shift = sitter_shift(pa, ps, {"right_armrest": 40, "left_armrest": 5}, seated_x=-0.05)
+    # the inner faces of the right armrests, from the generator's specs: -seat_width / 2
+    expect_dx = -s.spec.seat_width / 2 + a.spec.seat_width / 2
+    assert shift[0] == pytest.approx(expect_dx, abs=0.02)
+    assert shift[1] == 0.0
+    assert shift[2] == pytest.approx((s.spec.seat_depth - a.spec.seat_depth) / 2, abs=0.02)
+    # both armrests held about as long: the mean, i.e. no sideways move between symmetric chairs
+    both = sitter_shift(pa, ps, {"right_armrest": 40, "left_armrest": 30}, seated_x=0.0)
+    assert abs(both[0]) < 0.02
+    # the pelvis stays inside the seat however far the armrest asks
+    far = sitter_shift(ps, pa, {"left_armrest": 10}, seated_x=0.3)
+    half = pa.frames["seat"].half_extents[0]
+    assert abs(0.3 + far[0]) <= half - 0.2 + 1e-9
+
+
+def test_metric_transfer_onto_a_sofa(armchairs: list[tuple[Chair, ChairParts]],
+                                     sofa: tuple[Chair, ChairParts]) -> None:
+    """With the sitter's shift, a right-armrest contact lands on the sofa's right armrest at the
+    same depth relative to the seat front, and a seat contact keeps its place under the sitter
+    (metres, not stretched over the sofa's width)."""
+    (a, pa), _ = armchairs
+    s, ps = sofa
+    arm = _armrest_top_centre(a, -1.0)
+    seat = pa.frames["seat"].centre + np.array([-0.05, 0.0, 0.02])
+    shift = sitter_shift(pa, ps, {"right_armrest": 40}, seated_x=-0.05)
+    res = transfer_contacts(np.stack([arm, seat]), pa, a, ps, s, shift=shift)
+    assert not res.fallback.any()
+    assert res.part_names == ["right_armrest", "seat"]
+    mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
+    _, dist, face = trimesh.proximity.closest_point(mesh, res.points)
+    assert dist.max() < 1e-3
+    np.testing.assert_array_equal(s.face_parts[face], [PART_NAMES.index("right_armrest"),
+                                                       PART_NAMES.index("seat")])
+    # relative to the sitter (source point + shift) the seat contact moved only vertically, and
+    # the armrest contact kept its depth (it moves across to the wider armrest's middle and up)
+    moved = res.points - (np.stack([arm, seat]) + shift)
+    assert np.abs(moved[1, [0, 2]]).max() < 0.01
+    assert abs(moved[0, 2]) < 0.01
+    # without the shift the seat contact is stretched over the sofa's width
+    plain = transfer_contacts(seat[None], pa, a, ps, s)
+    assert abs(plain.points[0, 0]) > abs(res.points[1, 0] - shift[0]) + 0.05
+
+
+def test_metric_transfer_armrest_onto_straight_chair_goes_to_seat_edge(
+        armchairs: list[tuple[Chair, ChairParts]], straight: tuple[Chair, ChairParts]) -> None:
+    (a, pa), _ = armchairs
+    s, ps = straight
+    src = np.stack([_armrest_top_centre(a, 1.0), _armrest_top_centre(a, -1.0)])
+    shift = sitter_shift(pa, ps, {"left_armrest": 10, "right_armrest": 10}, seated_x=0.0)
+    res = transfer_contacts(src, pa, a, ps, s, shift=shift)
+    assert res.fallback.all()
+    mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
+    _, dist, face = trimesh.proximity.closest_point(mesh, res.points)
+    assert dist.max() < 1e-3
+    assert (s.face_parts[face] == PART_NAMES.index("seat")).all()
+    seat = ps.frames["seat"]
+    edge = seat.half_extents[0]
+    assert res.points[0, 0] > seat.centre[0] + 0.8 * edge     # the left (+X) edge
+    assert res.points[1, 0] < seat.centre[0] - 0.8 * edge     # the right edge
+    assert np.allclose(res.points[:, 1], seat.centre[1], atol=0.02)

@@ -1,0 +1,578 @@
+"""Training data for the synthesis networks: finding sequences, a feature cache, splits, datasets.
+
+Pipeline (``couch-train`` drives it through :mod:`couch.synthesis.train`):
+
+1. :func:`find_sequences` turns files and folders into :class:`SequenceRef` s (processed
+   ``.h5`` files, every group of an ``augmented.h5``, simulator ``motion_*.h5`` folders).
+2. :func:`build_cache` runs :func:`couch.synthesis.features.sequence_features` once per
+   sequence and writes every feature group into one HDF5 ``features.h5`` (atomically). The file
+   carries a hash of its sources (paths, sizes, mtimes) and of the :class:`FeatureConfig`, so a
+   second call with the same inputs reuses it and changed inputs rebuild it.
+3. :func:`split` holds out whole chairs (or whole sequences when there are fewer than three
+   chairs) for validation; :func:`fit_stats` fits normalisation on the training rows only.
+4. :class:`FrameDataset` (PoseNet, baseline, ContactNet rows) and :class:`WindowDataset`
+   (ControlNet windows inside one sequence) serve batches from memory. Both implement
+   ``__getitems__`` so a ``DataLoader`` slices whole batches out of numpy arrays instead of
+   collating rows one by one; use them with ``collate_fn=`` :func:`collate_batch`.
+
+Cache layout (``features.h5``): one dataset per feature group, (N_total, dim) float32, the rows
+of all sequences one after the other (row t of a sequence = its t -> t+1 pair, see
+:meth:`SequenceFeatures.as_groups`); ``/sequences/offsets`` (S+1,) int64 row offsets,
+``/sequences/names`` and ``/sequences/object_names`` (S,) strings, ``/sequences/sources``
+(S,) ``path`` or ``path:group``; per-sequence groups (the same value on every row, e.g. the
+2048-d ContactNet condition) are stored once per sequence under ``/per_sequence/<group>``
+(S, dim). Attributes: ``feature_config`` (JSON), ``source_hash``, ``format``, ``skipped``
+(JSON list of [source, reason]).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from couch.atomic import atomic_path
+from couch.schema import ProcessedSession, SchemaError, read_processed, read_session_group
+from couch.synthesis.features import (
+    FeatureConfig,
+    FeatureStats,
+    OccupancyGrid,
+    sequence_features,
+    voxel_grid,
+)
+
+__all__ = [
+    "CACHE_FORMAT",
+    "PER_SEQUENCE_GROUPS",
+    "FeatureCache",
+    "FrameDataset",
+    "SequenceRef",
+    "WindowDataset",
+    "build_cache",
+    "collate_batch",
+    "contact_rows",
+    "feature_config_from_json",
+    "find_sequences",
+    "fit_stats",
+    "load_sequence",
+    "source_hash",
+    "split",
+    "stack_groups",
+]
+
+#: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
+CACHE_FORMAT = 1
+#: Groups that hold the same value on every row of a sequence; stored once per sequence.
+PER_SEQUENCE_GROUPS: tuple[str, ...] = ("contact_condition",)
+#: File names a folder search always treats as sequences (other ``.h5`` files need the schema's
+#: ``schema_version`` attribute, so caches and unrelated HDF5 files in the folder are ignored).
+_KNOWN_NAMES = ("processed.h5", "augmented.h5")
+
+
+# --------------------------------------------------------------------------------------------
+# Finding and loading sequences
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, order=True)
+class SequenceRef:
+    """One sequence: an HDF5 file, and the group inside it for augmented datasets (else None)."""
+
+    path: Path
+    group: str | None = None
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.group}" if self.group is not None else str(self.path)
+
+
+def _refs_in_file(path: Path, strict: bool) -> list[SequenceRef]:
+    """Sequences in one HDF5 file; ``strict`` raises when the file is not in the schema (else
+    returns [] so folder searches skip caches and foreign files)."""
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as e:
+        if not strict:
+            return []
+        raise ValueError(f"{path}: not a readable HDF5 file ({e})") from e
+    with h5:
+        attrs = h5.attrs
+        if "schema_version" in attrs and "session" in attrs:
+            return [SequenceRef(path)]
+        # An augmented dataset: the root has schema_version (and kind="augmented"), each group
+        # is one session written by write_session_group.
+        groups = sorted(name for name, obj in h5.items()
+                        if isinstance(obj, h5py.Group) and "schema_version" in obj.attrs)
+        if groups:
+            return [SequenceRef(path, g) for g in groups]
+        if not strict:
+            return []
+        if "schema_version" in attrs:
+            raise ValueError(f"{path}: couch file without sessions (no 'session' attribute and "
+                             "no session groups)")
+        raise ValueError(f"{path}: not a couch processed session or augmented dataset (no "
+                         "'schema_version' attribute)")
+
+
+def find_sequences(paths: Iterable[str | os.PathLike]) -> list[SequenceRef]:
+    """All sequences under ``paths`` (files or folders), in a stable sorted order per path.
+
+    Files must be processed sessions or augmented datasets (every group). Folders are searched
+    recursively for ``processed.h5``, ``augmented.h5`` and ``motion_*.h5`` (each must be in the
+    schema) and for other ``.h5`` files that carry the schema's ``schema_version`` attribute
+    (others, e.g. a ``features.h5`` cache, are ignored). Duplicates are dropped.
+
+    Raises:
+        FileNotFoundError: a path does not exist.
+        ValueError: a folder holds no sequences, or a file is not in the schema (the message
+            names the path).
+    """
+    refs: list[SequenceRef] = []
+    paths = list(paths)
+    if not paths:
+        raise ValueError("no data paths given")
+    for raw in paths:
+        path = Path(raw)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such file or folder")
+        if path.is_dir():
+            found: list[SequenceRef] = []
+            for f in sorted(path.rglob("*.h5")):
+                if f.name.startswith("."):  # atomic_path temporaries of an interrupted writer
+                    continue
+                known = f.name in _KNOWN_NAMES or f.name.startswith("motion_")
+                found.extend(_refs_in_file(f, strict=known))
+            if not found:
+                raise ValueError(f"{path}: no sequences found (looked for processed.h5, "
+                                 "augmented.h5, motion_*.h5 and .h5 files with a "
+                                 "schema_version attribute)")
+            refs.extend(found)
+        else:
+            refs.extend(_refs_in_file(path, strict=True))
+    seen: set[tuple[str, str | None]] = set()
+    unique = []
+    for r in refs:
+        key = (str(r.path.resolve()), r.group)
+        if key not in seen:
+            seen.add(key)
+            unique.append(r)
+    return unique
+
+
+def load_sequence(ref: SequenceRef) -> ProcessedSession:
+    """Read and validate one sequence (raises :class:`couch.schema.SchemaError` naming it)."""
+    if ref.group is None:
+        return read_processed(ref.path)
+    try:
+        h5 = h5py.File(ref.path, "r")
+    except OSError as e:
+        raise SchemaError(f"{ref.path}: not a readable HDF5 file ({e})") from e
+    with h5:
+        if ref.group not in h5:
+            raise SchemaError(f"{ref}: no such group")
+        return read_session_group(h5[ref.group], str(ref))
+
+
+# --------------------------------------------------------------------------------------------
+# Feature cache
+# --------------------------------------------------------------------------------------------
+
+
+def _config_json(config: FeatureConfig) -> str:
+    return json.dumps(dataclasses.asdict(config), sort_keys=True)
+
+
+def feature_config_from_json(text: str) -> FeatureConfig:
+    """Inverse of the cache's ``feature_config`` attribute (lists back to tuples)."""
+    values = json.loads(text)
+    return FeatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def source_hash(refs: Sequence[SequenceRef], config: FeatureConfig) -> str:
+    """sha256 over the sources (resolved path, group, size, mtime in ns), the feature config
+    and :data:`CACHE_FORMAT`: any change to an input file or setting changes it."""
+    h = hashlib.sha256()
+    h.update(f"format={CACHE_FORMAT}\n{_config_json(config)}\n".encode())
+    for r in refs:
+        st = r.path.stat()
+        h.update(f"{r.path.resolve()}|{r.group}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+class FeatureCache:
+    """A ``features.h5`` opened for training; groups are read into memory on first use.
+
+    Attributes:
+        path: the cache file.
+        config: the :class:`FeatureConfig` it was built with.
+        offsets: (S+1,) int64 row offsets; sequence s owns rows ``offsets[s]:offsets[s+1]``.
+        names, object_names, sources: (S,) per-sequence strings.
+        dims: group -> width (per-row and per-sequence groups).
+        skipped: [(source, reason)] sequences that feature extraction rejected.
+        hit: True when :func:`build_cache` reused an existing file.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        try:
+            h5 = h5py.File(self.path, "r")
+        except OSError as e:
+            raise ValueError(f"{self.path}: not a readable feature cache ({e})") from e
+        with h5:
+            if "sequences" not in h5 or "feature_config" not in h5.attrs:
+                raise ValueError(f"{self.path}: not a couch feature cache (no /sequences)")
+            seq = h5["sequences"]
+            self.offsets = np.asarray(seq["offsets"][()], dtype=np.int64)
+            self.names = [_str(x) for x in seq["names"][()]]
+            self.object_names = [_str(x) for x in seq["object_names"][()]]
+            self.sources = [_str(x) for x in seq["sources"][()]]
+            self.config = feature_config_from_json(_str(h5.attrs["feature_config"]))
+            self.source_hash = _str(h5.attrs.get("source_hash", ""))
+            self.skipped = [tuple(x) for x in json.loads(_str(h5.attrs.get("skipped", "[]")))]
+            self.row_groups = [k for k in h5 if isinstance(h5[k], h5py.Dataset)]
+            self.sequence_groups = list(h5["per_sequence"]) if "per_sequence" in h5 else []
+            self.dims = {k: int(h5[k].shape[1]) for k in self.row_groups}
+            self.dims.update({k: int(h5["per_sequence"][k].shape[1])
+                              for k in self.sequence_groups})
+        self.hit = False
+        self._data: dict[str, np.ndarray] = {}
+        self.row_sequence = np.repeat(np.arange(self.num_sequences), np.diff(self.offsets))
+
+    @property
+    def num_sequences(self) -> int:
+        return len(self.names)
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.offsets[-1])
+
+    def lengths(self) -> np.ndarray:
+        """(S,) rows per sequence (frames - 1)."""
+        return np.diff(self.offsets)
+
+    def sequence_rows(self, sequences: Iterable[int]) -> np.ndarray:
+        """Row indices (int64) of the given sequences, in order."""
+        parts = [np.arange(self.offsets[s], self.offsets[s + 1]) for s in sequences]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+    def group(self, name: str) -> np.ndarray:
+        """(N_total, dim) float32 for a per-row group, (S, dim) for a per-sequence group; read
+        from disk once and kept in memory."""
+        if name not in self._data:
+            if name not in self.dims:
+                raise KeyError(f"{self.path}: no feature group {name!r}; has {sorted(self.dims)}")
+            with h5py.File(self.path, "r") as h5:
+                ds = h5["per_sequence"][name] if name in self.sequence_groups else h5[name]
+                self._data[name] = np.asarray(ds[()], dtype=np.float32)
+        return self._data[name]
+
+    def rows(self, name: str, indices: np.ndarray) -> np.ndarray:
+        """(len(indices), dim) float32 values of ``name`` at the given global rows (a
+        per-sequence group is looked up through each row's sequence)."""
+        data = self.group(name)
+        if name in self.sequence_groups:
+            return data[self.row_sequence[indices]]
+        return data[indices]
+
+
+def _str(x: Any) -> str:
+    return x.decode() if isinstance(x, bytes) else str(x)
+
+
+def build_cache(refs: Sequence[SequenceRef], out_path: str | os.PathLike,
+                config: FeatureConfig | None = None, progress: bool = True) -> FeatureCache:
+    """Compute the features of every sequence once and store them in ``out_path``.
+
+    If ``out_path`` exists with the same :func:`source_hash` it is reused untouched (``hit``);
+    otherwise it is rebuilt and replaced atomically. A sequence whose reading or feature
+    extraction raises is skipped (its source and the reason are kept in ``skipped`` and
+    printed); so are sequences with fewer than 2 frames (no t -> t+1 pair).
+
+    Raises:
+        ValueError: ``refs`` is empty or every sequence was skipped (with the reasons).
+    """
+    config = config or FeatureConfig()
+    refs = list(refs)
+    if not refs:
+        raise ValueError(f"{out_path}: no sequences to cache")
+    out_path = Path(out_path)
+    key = source_hash(refs, config)
+    if out_path.is_file():
+        try:
+            cache = FeatureCache(out_path)
+        except (ValueError, KeyError, OSError):
+            cache = None  # unreadable or foreign: rebuild it
+        if cache is not None and cache.source_hash == key:
+            cache.hit = True
+            return cache
+
+    skipped: list[tuple[str, str]] = []
+    offsets = [0]
+    names: list[str] = []
+    objects: list[str] = []
+    sources: list[str] = []
+    chair_key: tuple[str, bytes] | None = None
+    chair: tuple[OccupancyGrid, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+    with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:
+        per_seq: dict[str, list[np.ndarray]] = {}
+        for ref in tqdm(refs, desc="features", unit="seq", disable=not progress):
+            try:
+                session = load_sequence(ref)
+                # Consecutive sequences on the same chair (simulator folders, augmented groups of
+                # one shape) share the voxelisation and the occupancy grid, the slow part.
+                ckey = (session.object_name,
+                        hashlib.sha1(np.ascontiguousarray(session.object_vertices)).digest())
+                if ckey != chair_key:
+                    chair_key, chair = ckey, (
+                        OccupancyGrid.from_mesh(session.object_vertices, session.object_faces,
+                                                np.asarray(session.object_pose, np.float64),
+                                                config.occupancy_voxel),
+                        voxel_grid(session.object_vertices, session.object_faces,
+                                   config.interaction_resolution,
+                                   config.interaction_subsamples))
+                assert chair is not None
+                feats = sequence_features(session, config, grid=chair[0], voxels=chair[1])
+                groups = feats.as_groups()
+            except Exception as e:  # one bad sequence must not stop the others
+                skipped.append((str(ref), f"{type(e).__name__}: {e}"))
+                continue
+            n = len(next(iter(groups.values())))
+            if n < 1:
+                skipped.append((str(ref), f"only {feats.num_frames} frame(s) at "
+                                          f"{config.fps:g} fps; need 2"))
+                continue
+            for name, x in groups.items():
+                if name in PER_SEQUENCE_GROUPS:
+                    per_seq.setdefault(name, []).append(x[0])
+                    continue
+                if name not in h5:
+                    # Resizable so sequences can be appended without holding all in memory.
+                    h5.create_dataset(name, shape=(0, x.shape[1]), maxshape=(None, x.shape[1]),
+                                      dtype=np.float32, chunks=(256, x.shape[1]),
+                                      compression="gzip", compression_opts=1, shuffle=True)
+                ds = h5[name]
+                if ds.shape[1] != x.shape[1]:
+                    raise ValueError(f"{ref}: group {name} has width {x.shape[1]}, earlier "
+                                     f"sequences {ds.shape[1]}")
+                ds.resize(offsets[-1] + n, axis=0)
+                ds[offsets[-1]:] = x
+            offsets.append(offsets[-1] + n)
+            names.append(session.session)
+            objects.append(session.object_name)
+            sources.append(str(ref))
+        if not names:
+            reasons = "; ".join(f"{s}: {r}" for s, r in skipped[:5])
+            raise ValueError(f"all {len(refs)} sequences were skipped: {reasons}")
+        ps = h5.create_group("per_sequence")
+        for name, values in per_seq.items():
+            ps.create_dataset(name, data=np.stack(values).astype(np.float32),
+                              compression="gzip", compression_opts=1, shuffle=True)
+        seq = h5.create_group("sequences")
+        seq.create_dataset("offsets", data=np.asarray(offsets, dtype=np.int64))
+        text = h5py.string_dtype()
+        seq.create_dataset("names", data=np.array(names, dtype=object), dtype=text)
+        seq.create_dataset("object_names", data=np.array(objects, dtype=object), dtype=text)
+        seq.create_dataset("sources", data=np.array(sources, dtype=object), dtype=text)
+        h5.attrs.update(feature_config=_config_json(config), source_hash=key,
+                        format=CACHE_FORMAT, skipped=json.dumps(skipped))
+    if skipped and progress:
+        print(f"{out_path}: skipped {len(skipped)} of {len(refs)} sequences:")
+        for s, r in skipped:
+            print(f"  {s}: {r}")
+    return FeatureCache(out_path)
+
+
+# --------------------------------------------------------------------------------------------
+# Splits and normalisation
+# --------------------------------------------------------------------------------------------
+
+
+def split(cache: FeatureCache, val_fraction: float = 0.1, seed: int = 0,
+          by: str = "object") -> tuple[np.ndarray, np.ndarray]:
+    """Train / validation sequence indices (sorted int64 arrays).
+
+    ``by="object"`` holds out whole chairs (``object_name``) when there are at least three
+    distinct ones, so validation measures generalisation to unseen chairs; otherwise (or with
+    ``by="sequence"``) whole sequences are held out. At least one sequence (chair) is held out
+    when there are two or more; a single sequence trains with an empty validation set.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    if by not in ("object", "sequence"):
+        raise ValueError(f"split by 'object' or 'sequence', got {by!r}")
+    rng = np.random.default_rng(seed)
+    s = cache.num_sequences
+    objects = sorted(set(cache.object_names))
+    if by == "object" and len(objects) >= 3:
+        n_val = min(len(objects) - 1, max(1, round(val_fraction * len(objects))))
+        held = set(rng.permutation(objects)[:n_val].tolist()) if val_fraction > 0 else set()
+        val = np.array([i for i in range(s) if cache.object_names[i] in held], dtype=np.int64)
+    else:
+        n_val = min(s - 1, max(1, round(val_fraction * s))) if val_fraction > 0 else 0
+        val = np.sort(rng.permutation(s)[:n_val]).astype(np.int64)
+    train = np.setdiff1d(np.arange(s), val).astype(np.int64)
+    return train, val
+
+
+def fit_stats(cache: FeatureCache, groups: Iterable[str], rows: np.ndarray,
+              min_std: float | None = None) -> FeatureStats:
+    """Per-column mean and std (floored at ``min_std``, default the cache config's) of
+    ``groups`` over the given rows (the training split only, so validation stays unseen)."""
+    floor = cache.config.min_std if min_std is None else min_std
+    mean, std = {}, {}
+    for name in groups:
+        x = cache.rows(name, rows).astype(np.float64)
+        if len(x) == 0:
+            raise ValueError(f"{cache.path}: no rows to fit statistics of {name!r} on")
+        mean[name] = x.mean(0).astype(np.float32)
+        std[name] = np.maximum(x.std(0), floor).astype(np.float32)
+    return FeatureStats(mean, std)
+
+
+def contact_rows(cache: FeatureCache, sequences: Iterable[int], decimals: int = 3) -> np.ndarray:
+    """One row per (sequence, distinct hand-target set) with at least one hand target.
+
+    ContactNet learns a distribution over contact sets per chair; using every frame would weight
+    a set by how long the approach to it lasts (and a sequence by its length). Targets are
+    compared after rounding to ``decimals`` (mm). Returns sorted global row indices.
+    """
+    contacts = cache.group("hand_contacts")
+    mask = cache.group("hand_mask")
+    out = []
+    for s in sequences:
+        lo, hi = int(cache.offsets[s]), int(cache.offsets[s + 1])
+        seen: set[bytes] = set()
+        for r in range(lo, hi):
+            if not mask[r].any():
+                continue
+            key = np.concatenate([np.round(contacts[r], decimals), mask[r]]).tobytes()
+            if key not in seen:
+                seen.add(key)
+                out.append(r)
+    return np.asarray(out, dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# Datasets
+# --------------------------------------------------------------------------------------------
+
+
+def collate_batch(batch: Any) -> Any:
+    """``collate_fn`` for the datasets here: ``__getitems__`` already returns whole batches."""
+    return batch
+
+
+def _normalized(cache: FeatureCache, name: str, rows: np.ndarray,
+                stats: FeatureStats | None) -> np.ndarray:
+    x = cache.rows(name, rows)
+    if stats is not None and name in stats.mean:
+        x = stats.normalize(name, x)
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+class FrameDataset(torch.utils.data.Dataset):
+    """Rows (t -> t+1 pairs) for PoseNet, the baseline and ContactNet.
+
+    Item i is ``(inputs, targets)``: two dicts group -> float32 tensor (dim,), normalised with
+    ``stats`` where it has the group. ``__getitems__`` returns the same with (B, dim) tensors.
+
+    Args:
+        cache: the feature cache.
+        groups_in, groups_out: group names.
+        indices: global row indices (e.g. ``cache.sequence_rows(train)``).
+        stats: optional normalisation.
+    """
+
+    def __init__(self, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
+                 indices: np.ndarray, stats: FeatureStats | None = None) -> None:
+        self.indices = np.asarray(indices, dtype=np.int64)
+        # Copy the needed rows once (normalised), so batches are plain slices of numpy arrays.
+        self.inputs = {g: _normalized(cache, g, self.indices, stats) for g in groups_in}
+        self.targets = {g: _normalized(cache, g, self.indices, stats) for g in groups_out}
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        return ({k: torch.from_numpy(v[i]) for k, v in self.inputs.items()},
+                {k: torch.from_numpy(v[i]) for k, v in self.targets.items()})
+
+    def __getitems__(self, idx: Sequence[int]
+                     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        idx = np.asarray(idx, dtype=np.int64)
+        return ({k: torch.from_numpy(v[idx]) for k, v in self.inputs.items()},
+                {k: torch.from_numpy(v[idx]) for k, v in self.targets.items()})
+
+
+class WindowDataset(torch.utils.data.Dataset):
+    """Fixed-length windows of consecutive rows inside one sequence (ControlNet training).
+
+    Item i is a dict group -> float32 tensor (window, dim); ``__getitems__`` gives
+    (B, window, dim). Windows start every ``stride`` rows (default ``window // 2``) and the
+    last window of a sequence ends at its last row; sequences with fewer than ``window`` rows
+    contribute none (they still serve PoseNet) and are counted in ``too_short``.
+
+    Args:
+        cache: the feature cache.
+        window: frames per window (paper 60).
+        stride: rows between window starts.
+        sequences: sequence indices to draw from (default all).
+        groups: groups to serve (default the ControlNet's inputs, targets and pose).
+        stats: optional normalisation.
+    """
+
+    DEFAULT_GROUPS = ("joint_positions", "control_line", "hand_phases",
+                      "next_control_positions", "next_control_phases")
+
+    def __init__(self, cache: FeatureCache, window: int = 60, stride: int | None = None,
+                 sequences: Iterable[int] | None = None, groups: Sequence[str] | None = None,
+                 stats: FeatureStats | None = None) -> None:
+        if window < 1:
+            raise ValueError(f"window must be positive, got {window}")
+        stride = stride or max(1, window // 2)
+        seqs = list(range(cache.num_sequences) if sequences is None else sequences)
+        groups = list(groups or self.DEFAULT_GROUPS)
+        self.window = window
+        starts: list[int] = []
+        self.too_short = 0
+        for s in seqs:
+            lo, hi = int(cache.offsets[s]), int(cache.offsets[s + 1])
+            if hi - lo < window:
+                self.too_short += 1
+                continue
+            first = list(range(lo, hi - window + 1, stride))
+            if first[-1] != hi - window:
+                first.append(hi - window)
+            starts.extend(first)
+        self.starts = np.asarray(starts, dtype=np.int64)
+        rows = cache.sequence_rows(seqs)
+        # Keep the selected sequences' rows (normalised) and map global rows into them.
+        self._local = np.full(cache.num_rows + 1, -1, dtype=np.int64)
+        self._local[rows] = np.arange(len(rows))
+        self.data = {g: _normalized(cache, g, rows, stats) for g in groups}
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+    def _take(self, starts: np.ndarray) -> dict[str, torch.Tensor]:
+        idx = self._local[starts[:, None] + np.arange(self.window)]  # (B, window)
+        return {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v[0] for k, v in self._take(self.starts[[i]]).items()}
+
+    def __getitems__(self, idx: Sequence[int]) -> dict[str, torch.Tensor]:
+        return self._take(self.starts[np.asarray(idx, dtype=np.int64)])
+
+
+def stack_groups(values: Mapping[str, torch.Tensor], names: Sequence[str]) -> torch.Tensor:
+    """Concatenate named (..., dim) tensors along the last axis in ``names`` order."""
+    return torch.cat([values[n] for n in names], dim=-1)

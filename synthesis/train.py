@@ -1,0 +1,782 @@
+"""``couch-train``: train ControlNet, PoseNet, ContactNet and the NSM+Control baseline.
+
+Paper supplementary Sec. 2: 150 epochs each; ControlNet Adam 1e-3 with cosine decay to 5e-6
+over 60-frame windows with scheduled sampling; PoseNet Adam 1e-4 cosine to 5e-6; ContactNet
+Adam 1e-3, beta 0.1, z 6; batch 32 (released code). The ``ci`` preset shrinks every network
+so that all four train on a handful of simulated sequences in about a minute on a CPU.
+
+Run layout (``RUN`` = ``-o``)::
+
+    RUN/features.h5            feature cache (data.build_cache; reused while inputs are unchanged)
+    RUN/<net>/checkpoint.pt    last finished epoch: model, optimizer, scheduler, RNG, history
+    RUN/<net>/best.pt          model with the lowest validation loss
+    RUN/<net>/stats.npz        normalisation (FeatureStats) fitted on the training split
+    RUN/<net>/log.csv          one row per epoch: lr, losses and their components, seconds
+    RUN/<net>/curves.png       loss curves
+
+Checkpoints hold only tensors, numbers and strings (configs as JSON), so they load with
+``torch.load(..., weights_only=True)``. Each epoch reseeds torch from ``(seed, epoch)`` and the
+DataLoader's generator likewise, so a run resumed after epoch k gives the same weights as an
+uninterrupted one (on the same device and torch build).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from tqdm import tqdm
+
+from couch.atomic import atomic_path
+from couch.schema import SchemaError
+from couch.synthesis.data import (
+    FeatureCache,
+    FrameDataset,
+    WindowDataset,
+    build_cache,
+    collate_batch,
+    contact_rows,
+    find_sequences,
+    fit_stats,
+    split,
+)
+from couch.synthesis.features import FeatureStats, layout
+from couch.synthesis.nets import (
+    ContactNet,
+    ContactNetConfig,
+    ControlNet,
+    ControlNetConfig,
+    PoseNet,
+    PoseNetConfig,
+    control_loss,
+    kl_divergence,
+    rollout,
+    scheduled_sampling_probability,
+)
+
+__all__ = [
+    "ENCODER_GROUPS",
+    "GATING_GROUPS",
+    "NETS",
+    "PRESETS",
+    "NetResult",
+    "TrainConfig",
+    "TrainResult",
+    "load_trained",
+    "main",
+    "pose_inputs",
+    "preset_config",
+    "train",
+]
+
+NETS: tuple[str, ...] = ("control", "pose", "contact", "baseline")
+PRESETS: tuple[str, ...] = ("paper", "ci")
+
+#: PoseNet encoder name (Table 5) -> the feature groups concatenated as its input.
+ENCODER_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
+    "pose": {"C": ("control_positions", "control_phases"),
+             "JT": ("joint_positions", "joint_rotations", "joint_velocities", "trajectory"),
+             "G": ("goals",), "I": ("interaction",), "E": ("ego",)},
+}
+# The NSM+Control baseline reads the raw hand contacts where PoseNet reads ControlNet's C+.
+ENCODER_GROUPS["baseline"] = {**ENCODER_GROUPS["pose"], "C": ("contact_inputs",)}
+#: Gating features per PoseNet variant. The baseline has no local phases (it never sees
+#: ControlNet's output), so it gates on the contact inputs (targets and masks) instead.
+GATING_GROUPS: dict[str, tuple[str, ...]] = {
+    "pose": ("global_phase", "control_phases"),
+    "baseline": ("global_phase", "contact_inputs"),
+}
+_LAYOUT_KEY = {"control": "controlnet", "pose": "posenet", "baseline": "baseline",
+               "contact": "contactnet"}
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings of one network (see :func:`preset_config`).
+
+    Attributes:
+        net: control | pose | contact | baseline.
+        preset: the preset it came from (paper | ci).
+        epochs: training epochs.
+        batch_size: samples (rows, windows or contact sets) per step.
+        lr: initial Adam learning rate.
+        lr_min: cosine schedule's final learning rate (ignored without ``cosine``).
+        cosine: cosine-anneal the learning rate per epoch from ``lr`` to ``lr_min``.
+        weight_decay: Adam weight decay (paper: none mentioned).
+        grad_clip: clip the gradient norm to this (0: off).
+        window: ControlNet frames per training window (paper 60).
+        stride: ControlNet rows between window starts (0: window // 2).
+        val_fraction: share of chairs (or sequences) held out for validation.
+        split_by: "object" (held-out chairs when >= 3) or "sequence".
+        network: the network's config (``ControlNetConfig`` etc.) as a plain dict.
+    """
+
+    net: str
+    preset: str = "paper"
+    epochs: int = 150
+    batch_size: int = 32
+    lr: float = 1e-4
+    lr_min: float = 5e-6
+    cosine: bool = True
+    weight_decay: float = 0.0
+    grad_clip: float = 0.0
+    window: int = 60
+    stride: int = 0
+    val_fraction: float = 0.1
+    split_by: str = "object"
+    network: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> TrainConfig:
+        return cls(**json.loads(text))
+
+
+def _tuples(value: Any) -> Any:
+    """JSON lists back to the tuples the network configs use (recursively through dicts)."""
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _tuples(v) for k, v in value.items()}
+    return value
+
+
+def network_config(cfg: TrainConfig) -> ControlNetConfig | PoseNetConfig | ContactNetConfig:
+    """The network config object of ``cfg.network``."""
+    cls = {"control": ControlNetConfig, "pose": PoseNetConfig, "baseline": PoseNetConfig,
+           "contact": ContactNetConfig}[cfg.net]
+    return cls(**_tuples(cfg.network))
+
+
+def preset_config(net: str, preset: str = "paper", epochs: int | None = None) -> TrainConfig:
+    """The :class:`TrainConfig` of ``net`` under ``preset``.
+
+    ``paper``: supplementary Sec. 2 (network sizes are the nets module's paper defaults).
+    ``ci``: the same recipe on tiny networks (hidden 32-64, 3 experts, 20-frame windows, a few
+    epochs) and a faster scheduled-sampling ramp, for tests and smoke runs.
+    """
+    if net not in NETS:
+        raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)}")
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    ci = preset == "ci"
+    if net == "control":
+        ncfg: Any = (ControlNetConfig(pose_encoder=(32, 32), control_encoder=(32, 32),
+                                      lstm_hidden=64, teacher_forcing_until=1.0,
+                                      teacher_forcing_off_at=4.0)
+                     if ci else ControlNetConfig())
+        kw: dict[str, Any] = dict(lr=1e-3 if not ci else 3e-3, window=20 if ci else 60,
+                                  epochs=12 if ci else 150, grad_clip=1.0 if ci else 0.0)
+    elif net in ("pose", "baseline"):
+        ncfg = (PoseNetConfig(encoders={"C": (32,), "JT": (64,), "G": (32,), "I": (32,),
+                                        "E": (32,)},
+                              num_experts=3, gating_hidden=(32,), expert_hidden=(64,))
+                if ci else PoseNetConfig())
+        kw = dict(lr=1e-3 if ci else 1e-4, epochs=6 if ci else 150)
+    else:
+        ncfg = (ContactNetConfig(condition_encoder=(64, 32, 16), encoder_hidden=(32, 16),
+                                 decoder_hidden=(32, 16))
+                if ci else ContactNetConfig())
+        # Paper: Adam 1e-3 for 150 epochs, no schedule mentioned -> constant rate. ci has only
+        # ~10 contact sets, so small batches give it a few steps per epoch.
+        kw = dict(lr=3e-3 if ci else 1e-3, cosine=False, epochs=15 if ci else 150,
+                  batch_size=4 if ci else 32)
+    if epochs is not None:
+        if epochs < 1:
+            raise ValueError(f"epochs must be at least 1, got {epochs}")
+        kw["epochs"] = epochs
+    return TrainConfig(net=net, preset=preset, network=json.loads(json.dumps(
+        dataclasses.asdict(ncfg))), **kw)
+
+
+# --------------------------------------------------------------------------------------------
+# Per-network tasks: datasets, model, loss
+# --------------------------------------------------------------------------------------------
+
+
+def pose_inputs(groups: Mapping[str, Tensor], net: str = "pose") -> dict[str, Tensor]:
+    """PoseNet inputs from normalised feature groups: the encoder inputs (C, JT, G, I, E, each
+    the concatenation of :data:`ENCODER_GROUPS`) and the gating features, all (B, dim)."""
+    out = {enc: torch.cat([groups[g] for g in names], dim=-1)
+           for enc, names in ENCODER_GROUPS[net].items()}
+    out.update({g: groups[g] for g in GATING_GROUPS[net]})
+    return out
+
+
+@dataclasses.dataclass
+class _Task:
+    model: nn.Module
+    train_ds: torch.utils.data.Dataset
+    val_ds: torch.utils.data.Dataset
+    stats: FeatureStats
+    loss: Callable[[nn.Module, Any, int, bool, torch.Generator | None], dict[str, Tensor]]
+    meta: dict[str, Any]
+
+
+def _to(x: Any, device: torch.device) -> Any:
+    if isinstance(x, Tensor):
+        return x.to(device, non_blocking=True)
+    if isinstance(x, dict):
+        return {k: _to(v, device) for k, v in x.items()}
+    if isinstance(x, (tuple, list)):
+        return type(x)(_to(v, device) for v in x)
+    return x
+
+
+def _control_stats(cache: FeatureCache, rows: np.ndarray) -> FeatureStats:
+    """ControlNet normalisation. The straight-line input and the predicted trajectory share one
+    scalar scale and no offset: scheduled sampling copies predictions into the line's columns
+    and Eq. 2's regulariser compares the two, so both must live in the same space, and zero
+    (= no contact target) must stay zero. Phases are already in [0, 1]; the pose is z-scored."""
+    stats = fit_stats(cache, ["joint_positions"], rows)
+    traj = cache.rows("next_control_positions", rows)
+    nonzero = traj[traj != 0]
+    scale = float(np.sqrt(np.mean(nonzero.astype(np.float64) ** 2))) if nonzero.size else 1.0
+    scale = max(scale, cache.config.min_std)
+    for g in ("control_line", "next_control_positions", "hand_phases", "next_control_phases"):
+        dim = cache.dims[g]
+        stats.mean[g] = np.zeros(dim, np.float32)
+        is_traj = g in ("control_line", "next_control_positions")
+        stats.std[g] = np.full(dim, scale if is_traj else 1.0, np.float32)
+    return stats
+
+
+def _control_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: TrainConfig,
+                  stats: FeatureStats | None) -> _Task:
+    ncfg = network_config(cfg)
+    assert isinstance(ncfg, ControlNetConfig)
+    stats = stats or _control_stats(cache, cache.sequence_rows(train))
+    d = cache.dims
+    traj, phase = d["next_control_positions"], d["next_control_phases"]
+    if d["control_line"] != traj:
+        raise ValueError(f"{cache.path}: control_line ({d['control_line']}) and "
+                         f"next_control_positions ({traj}) must match column for column")
+    dims = dict(pose_dim=d["joint_positions"], control_dim=d["control_line"] + d["hand_phases"],
+                out_dim=traj + phase)
+    model = ControlNet(config=ncfg, **dims)
+    stride = cfg.stride or None
+    train_ds = WindowDataset(cache, cfg.window, stride, train, stats=stats)
+    val_ds = WindowDataset(cache, cfg.window, stride, val, stats=stats)
+    if len(train_ds) == 0:
+        raise ValueError(f"{cache.path}: no training sequence has {cfg.window} frames for "
+                         "ControlNet windows")
+    traj_cols, phase_cols = slice(0, traj), slice(traj, traj + phase)
+
+    def loss(model: nn.Module, batch: dict[str, Tensor], epoch: int, training: bool,
+             gen: torch.Generator | None) -> dict[str, Tensor]:
+        assert isinstance(model, ControlNet)
+        control = torch.cat([batch["control_line"], batch["hand_phases"]], -1)
+        target = torch.cat([batch["next_control_positions"], batch["next_control_phases"]], -1)
+        # Validation runs closed loop (every fed-back step uses the prediction), as at runtime,
+        # so its loss is comparable across epochs while the teacher probability falls.
+        p = scheduled_sampling_probability(epoch, ncfg) if training else 0.0
+        out = rollout(model, batch["joint_positions"], control, p, control_traj=traj_cols,
+                      out_traj=traj_cols, generator=gen).out
+        terms = control_loss(out, target, batch["control_line"], ncfg.loss_weights,
+                             traj_cols=traj_cols, phase_cols=phase_cols, reg=ncfg.reg)
+        return {"loss": terms.total, "traj": terms.traj, "phase": terms.phase, "reg": terms.reg,
+                "p_teacher": torch.tensor(p)}
+
+    return _Task(model, train_ds, val_ds, stats, loss, {"model_args": dims})
+
+
+def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: TrainConfig,
+               stats: FeatureStats | None) -> _Task:
+    ncfg = network_config(cfg)
+    assert isinstance(ncfg, PoseNetConfig)
+    spec = layout(cache.config)[_LAYOUT_KEY[cfg.net]]
+    missing = [g for g in [*spec["inputs"], *spec["targets"]] if g not in cache.dims]
+    if missing:
+        raise ValueError(f"{cache.path}: feature groups {missing} missing (cache built by an "
+                         "older couch? delete it to rebuild)")
+    groups_in, groups_out = list(spec["inputs"]), list(spec["targets"])
+    stats = stats or fit_stats(cache, groups_in + groups_out, cache.sequence_rows(train))
+    d = cache.dims
+    inputs = {enc: sum(d[g] for g in names) for enc, names in ENCODER_GROUPS[cfg.net].items()}
+    gating = {g: d[g] for g in GATING_GROUPS[cfg.net]}
+    out_dim = sum(d[g] for g in groups_out)
+    model = PoseNet(inputs, gating, out_dim, ncfg)
+    train_ds = FrameDataset(cache, groups_in, groups_out, cache.sequence_rows(train), stats)
+    val_ds = FrameDataset(cache, groups_in, groups_out, cache.sequence_rows(val), stats)
+    widths = {g: d[g] for g in groups_out}
+
+    def loss(model: nn.Module, batch: Any, epoch: int, training: bool,
+             gen: torch.Generator | None) -> dict[str, Tensor]:
+        x, y = batch
+        pred, _ = model(pose_inputs(x, cfg.net))
+        target = torch.cat([y[g] for g in groups_out], -1)
+        terms = {"loss": torch.mean((pred - target) ** 2)}
+        # Per-group MSE components (which targets are hard) from the same prediction.
+        for g, part in zip(groups_out, torch.split((pred - target).detach() ** 2,
+                                                   list(widths.values()), -1), strict=True):
+            terms[g] = part.mean()
+        return terms
+
+    meta = {"model_args": {"inputs": inputs, "gating_inputs": gating, "out_dim": out_dim},
+            "groups_in": groups_in, "groups_out": groups_out}
+    return _Task(model, train_ds, val_ds, stats, loss, meta)
+
+
+def _contact_stats(cache: FeatureCache, rows: np.ndarray) -> FeatureStats:
+    """ContactNet normalisation: the condition z-scored; each hand's contact coordinates
+    z-scored over the rows where that hand has a target (masked hands are zeros, not data)."""
+    stats = fit_stats(cache, ["contact_condition"], rows)
+    c = cache.rows("hand_contacts", rows).reshape(len(rows), 2, 3).astype(np.float64)
+    m = cache.rows("hand_mask", rows) > 0.5
+    mean, std = np.zeros((2, 3)), np.ones((2, 3))
+    for h in range(2):
+        if m[:, h].any():
+            mean[h] = c[m[:, h], h].mean(0)
+            std[h] = np.maximum(c[m[:, h], h].std(0), cache.config.min_std)
+    stats.mean["hand_contacts"] = mean.reshape(6).astype(np.float32)
+    stats.std["hand_contacts"] = std.reshape(6).astype(np.float32)
+    return stats
+
+
+def _contact_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: TrainConfig,
+                  stats: FeatureStats | None) -> _Task:
+    ncfg = network_config(cfg)
+    assert isinstance(ncfg, ContactNetConfig)
+    train_rows, val_rows = contact_rows(cache, train), contact_rows(cache, val)
+    if len(train_rows) == 0:
+        raise ValueError(f"{cache.path}: no training sequence has a hand contact target; "
+                         "ContactNet has nothing to learn")
+    stats = stats or _contact_stats(cache, train_rows)
+    cond_dim, contact_dim = cache.dims["contact_condition"], cache.dims["hand_contacts"]
+    model = ContactNet(cond_dim, contact_dim, ncfg)
+    groups_in, groups_out = ["contact_condition"], ["hand_contacts", "hand_mask"]
+    train_ds = FrameDataset(cache, groups_in, groups_out, train_rows, stats)
+    val_ds = FrameDataset(cache, groups_in, groups_out, val_rows, stats)
+
+    def loss(model: nn.Module, batch: Any, epoch: int, training: bool,
+             gen: torch.Generator | None) -> dict[str, Tensor]:
+        x, y = batch
+        mask = y["hand_mask"].repeat_interleave(3, dim=-1)  # (B, 6): one flag per coordinate
+        c = y["hand_contacts"] * mask  # masked hands: zero target (normalised space)
+        c_hat, mu, logvar = model(c, x["contact_condition"])
+        # Eq. 4 with masked hands left out of the reconstruction.
+        recon = ((c_hat - c) ** 2 * mask).sum(-1).mean()
+        kl = kl_divergence(mu, logvar).mean()
+        return {"loss": recon + ncfg.beta * kl, "recon": recon, "kl": kl}
+
+    meta = {"model_args": {"cond_dim": cond_dim, "contact_dim": contact_dim},
+            "samples": {"train": len(train_rows), "val": len(val_rows)}}
+    return _Task(model, train_ds, val_ds, stats, loss, meta)
+
+
+_TASKS = {"control": _control_task, "pose": _pose_task, "baseline": _pose_task,
+          "contact": _contact_task}
+
+
+def _build_model(net: str, cfg: TrainConfig, args: Mapping[str, Any]) -> nn.Module:
+    ncfg = network_config(cfg)
+    if net == "control":
+        return ControlNet(config=ncfg, **args)  # type: ignore[arg-type]
+    if net in ("pose", "baseline"):
+        return PoseNet(args["inputs"], args["gating_inputs"], args["out_dim"],
+                       ncfg)  # type: ignore[arg-type]
+    return ContactNet(args["cond_dim"], args["contact_dim"], ncfg)  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------------------
+# Training loop
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class NetResult:
+    """Outcome of one network's training (losses per epoch from its log)."""
+
+    net: str
+    dir: Path
+    epochs: int
+    resumed_from: int  #: last epoch finished before this call (0: fresh start)
+    history: list[dict[str, float]]
+    seconds: float  #: wall time of this call's epochs
+    model: nn.Module | None = None
+
+    @property
+    def train_loss(self) -> list[float]:
+        return [h["train_loss"] for h in self.history]
+
+    @property
+    def val_loss(self) -> list[float]:
+        return [h["val_loss"] for h in self.history]
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What :func:`train` did: the cache and each network's :class:`NetResult`."""
+
+    run_dir: Path
+    cache_path: Path
+    cache_hit: bool
+    skipped: list[tuple[str, str]]
+    nets: dict[str, NetResult]
+
+
+def _seed_all(seed: int) -> None:
+    # numpy randomness (the split) uses np.random.default_rng(seed); only torch is global.
+    torch.manual_seed(seed)
+
+
+def _epoch_seed(seed: int, epoch: int) -> int:
+    # Distinct, reproducible stream per (seed, epoch): what makes resume == uninterrupted.
+    return (seed * 1_000_003 + epoch * 7919) % 2**63
+
+
+def _rng_state() -> dict[str, Any]:
+    state: dict[str, Any] = {"torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(list(state["cuda"]))
+
+
+def _save(obj: dict[str, Any], path: Path) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def _run_epoch(task: _Task, loader: torch.utils.data.DataLoader, epoch: int, training: bool,
+               optimizer: torch.optim.Optimizer | None, cfg: TrainConfig, device: torch.device,
+               gen: torch.Generator | None, bar: bool, desc: str) -> dict[str, float]:
+    """Mean of each loss term over the epoch's samples (nan for an empty loader)."""
+    model = task.model
+    model.train(training)
+    sums: dict[str, float] = {}
+    count = 0
+    with torch.set_grad_enabled(training):
+        for batch in tqdm(loader, desc=desc, leave=False, disable=not bar, unit="batch"):
+            batch = _to(batch, device)
+            terms = task.loss(model, batch, epoch, training, gen)
+            if training:
+                assert optimizer is not None
+                optimizer.zero_grad(set_to_none=True)
+                terms["loss"].backward()
+                if cfg.grad_clip > 0:
+                    nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                optimizer.step()
+            n = _batch_size(batch)
+            count += n
+            for k, v in terms.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach()) * n
+    if count == 0:
+        return {}
+    return {k: v / count for k, v in sums.items()}
+
+
+def _batch_size(batch: Any) -> int:
+    first = batch[0] if isinstance(batch, tuple) else batch
+    return int(next(iter(first.values())).shape[0])
+
+
+def _write_log(path: Path, history: list[dict[str, float]]) -> None:
+    """log.csv rewritten from the checkpoint's history: exactly one row per finished epoch."""
+    keys: list[str] = []
+    for row in history:
+        keys += [k for k in row if k not in keys]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=keys, restval="")
+    writer.writeheader()
+    for row in history:
+        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    with atomic_path(path) as tmp:
+        tmp.write_text(buf.getvalue())
+
+
+def _plot(path: Path, history: list[dict[str, float]], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")  # headless; never opens a window
+    import matplotlib.pyplot as plt
+
+    epochs = [h["epoch"] for h in history]
+    fig, (ax, ax_lr) = plt.subplots(1, 2, figsize=(9, 3.5))
+    ax.plot(epochs, [h["train_loss"] for h in history], "o-", label="train")
+    val = [h["val_loss"] for h in history]
+    if any(math.isfinite(v) for v in val):
+        ax.plot(epochs, val, "s-", label="validation")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    if all(h["train_loss"] > 0 for h in history):
+        ax.set_yscale("log")
+    ax.legend()
+    ax.set_title(title)
+    ax_lr.plot(epochs, [h["lr"] for h in history], "-")
+    ax_lr.set_xlabel("epoch")
+    ax_lr.set_ylabel("learning rate")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+
+
+def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: np.ndarray,
+               cfg: TrainConfig, out: Path, *, device: torch.device, seed: int, resume: bool,
+               progress: bool, stop_after: int | None) -> NetResult:
+    out.mkdir(parents=True, exist_ok=True)
+    ck_path, best_path, stats_path = out / "checkpoint.pt", out / "best.pt", out / "stats.npz"
+    checkpoint = None
+    if resume and ck_path.is_file():
+        try:
+            checkpoint = torch.load(ck_path, map_location="cpu", weights_only=True)
+        except Exception as e:  # any unreadable checkpoint gets the same message
+            raise ValueError(f"{ck_path}: cannot read checkpoint ({e}); use --no-resume") from e
+        saved = json.loads(checkpoint["meta"])["train_config"]
+        if saved != json.loads(cfg.to_json()):
+            diff = sorted(k for k in saved if saved.get(k) != json.loads(cfg.to_json()).get(k))
+            raise ValueError(f"{ck_path}: was trained with different settings ({', '.join(diff)});"
+                             " use --no-resume or another run folder")
+    stats = FeatureStats.load(stats_path) if checkpoint is not None and stats_path.is_file() \
+        else None
+
+    _seed_all(seed)  # model initialisation
+    task = _TASKS[net](cache, train_seqs, val_seqs, cfg, stats)
+    task.stats.save(stats_path)
+    model = task.model.to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    scheduler: torch.optim.lr_scheduler.LRScheduler = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs,
+                                                   eta_min=cfg.lr_min)
+        if cfg.cosine else torch.optim.lr_scheduler.ConstantLR(optimizer, 1.0, total_iters=0))
+    meta = {"net": net, "train_config": json.loads(cfg.to_json()), **task.meta,
+            "feature_config": json.loads(json.dumps(dataclasses.asdict(cache.config))),
+            "cache": str(cache.path), "cache_hash": cache.source_hash,
+            "split": {"train": [cache.names[i] for i in train_seqs],
+                      "val": [cache.names[i] for i in val_seqs]}}
+    # Not sort_keys: PoseNet concatenates its encoder and gating groups in dict order.
+    meta_json = json.dumps(meta)
+
+    history: list[dict[str, float]] = []
+    best_val = math.inf
+    start = 1
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        scheduler.load_state_dict(checkpoint["scheduler"])
+        _set_rng_state(checkpoint["rng"])
+        history = [dict(h) for h in checkpoint["history"]]
+        best_val = float(checkpoint["best_val"])
+        start = int(checkpoint["epoch"]) + 1
+    resumed_from = start - 1
+
+    bs = cfg.batch_size
+    loader_gen = torch.Generator()
+    train_loader = torch.utils.data.DataLoader(task.train_ds, batch_size=bs, shuffle=True,
+                                               generator=loader_gen, collate_fn=collate_batch)
+    val_loader = torch.utils.data.DataLoader(task.val_ds, batch_size=bs, shuffle=False,
+                                             collate_fn=collate_batch)
+    roll_gen = torch.Generator(device=device)
+    t_call = time.perf_counter()
+    last = cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)
+    for epoch in range(start, last + 1):
+        t0 = time.perf_counter()
+        es = _epoch_seed(seed, epoch)
+        torch.manual_seed(es)
+        loader_gen.manual_seed(es + 1)
+        roll_gen.manual_seed(es + 2)
+        lr = optimizer.param_groups[0]["lr"]
+        bar = progress
+        tr = _run_epoch(task, train_loader, epoch, True, optimizer, cfg, device, roll_gen, bar,
+                        f"{net} {epoch}/{cfg.epochs} train")
+        # Validation draws its own fixed noise (ContactNet's z, rollout Bernoullis) without
+        # touching the training streams, so it is comparable across epochs.
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            torch.manual_seed(seed + 12345)
+            val_gen = torch.Generator(device=device).manual_seed(seed + 54321)
+            va = _run_epoch(task, val_loader, epoch, False, None, cfg, device, val_gen, bar,
+                            f"{net} {epoch}/{cfg.epochs} val")
+        scheduler.step()
+        row: dict[str, float] = {"epoch": epoch, "lr": lr,
+                                 "train_loss": tr["loss"], "val_loss": va.get("loss", math.nan)}
+        row.update({f"train_{k}": v for k, v in tr.items() if k != "loss"})
+        row.update({f"val_{k}": v for k, v in va.items() if k != "loss"})
+        row["seconds"] = time.perf_counter() - t0
+        history.append(row)
+        # Without a validation set the training loss picks the best model.
+        score = row["val_loss"] if math.isfinite(row["val_loss"]) else row["train_loss"]
+        state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        if score < best_val:
+            best_val = score
+            _save({"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json},
+                  best_path)
+        _save({"model": state, "optimizer": optimizer.state_dict(),
+               "scheduler": scheduler.state_dict(), "epoch": epoch, "best_val": best_val,
+               "history": history, "rng": _rng_state(), "meta": meta_json}, ck_path)
+        _write_log(out / "log.csv", history)
+        if progress:
+            print(f"{net} epoch {epoch}/{cfg.epochs}: train {row['train_loss']:.4g} "
+                  f"val {row['val_loss']:.4g} lr {lr:.3g} ({row['seconds']:.1f} s)")
+    if history:
+        _write_log(out / "log.csv", history)
+        _plot(out / "curves.png", history, f"{net} ({cfg.preset})")
+    return NetResult(net, out, int(history[-1]["epoch"]) if history else 0, resumed_from,
+                     history, time.perf_counter() - t_call, model)
+
+
+def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *,
+          net: str = "all", preset: str = "paper", epochs: int | None = None,
+          device: str = "cpu", seed: int = 0, resume: bool = True, progress: bool = True,
+          threads: int | None = 1, stop_after: int | None = None,
+          configs: Mapping[str, TrainConfig] | None = None) -> TrainResult:
+    """Train ``net`` (control | pose | contact | baseline | all) on the sequences under
+    ``data_paths``, writing everything into ``run_dir`` (see the module docstring).
+
+    Args:
+        data_paths: files/folders for :func:`couch.synthesis.data.find_sequences`.
+        run_dir: output folder (created).
+        net: which network, or "all" (control, pose, contact, baseline in that order).
+        preset: "paper" or "ci" (:func:`preset_config`).
+        epochs: override the preset's epochs.
+        device: torch device string ("cpu", "cuda", "cuda:1").
+        seed: seeds the split, initialisation, shuffling and sampling.
+        resume: continue each network from its ``checkpoint.pt`` (last finished epoch).
+        progress: tqdm bars and per-epoch lines.
+        threads: torch CPU threads during training (1 is fastest for these small nets on few
+            cores); None leaves torch's setting alone.
+        stop_after: finish at most this epoch in this call (time-sliced jobs; resume later).
+        configs: per-net :class:`TrainConfig` overriding the preset.
+    Raises:
+        FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
+    """
+    nets = list(NETS) if net == "all" else [net]
+    if any(n not in NETS for n in nets):
+        raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)} or all")
+    cfgs = {n: (configs or {}).get(n) or preset_config(n, preset, epochs) for n in nets}
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but CUDA is not available")
+    run = Path(run_dir)
+    refs = find_sequences(data_paths)
+    old_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(max(1, int(threads)))
+    try:
+        cache = build_cache(refs, run / "features.h5", progress=progress)
+        if progress:
+            state = "reused" if cache.hit else "built"
+            print(f"{run / 'features.h5'}: {state}, {cache.num_sequences} sequences, "
+                  f"{cache.num_rows} rows, {len(cache.skipped)} skipped")
+        results = {}
+        for n in nets:
+            cfg = cfgs[n]
+            train_seqs, val_seqs = split(cache, cfg.val_fraction, seed, cfg.split_by)
+            results[n] = _train_net(n, cache, train_seqs, val_seqs, cfg, run / n, device=dev,
+                                    seed=seed, resume=resume, progress=progress,
+                                    stop_after=stop_after)
+    finally:
+        torch.set_num_threads(old_threads)
+    return TrainResult(run, cache.path, cache.hit, list(cache.skipped), results)
+
+
+def load_trained(run_dir: str | os.PathLike, net: str, which: str = "best",
+                 device: str = "cpu") -> tuple[nn.Module, FeatureStats, dict[str, Any]]:
+    """A trained network for inference: ``(model in eval mode, stats, meta)``.
+
+    ``which`` is "best" (lowest validation loss) or "last" (the last finished epoch). ``meta``
+    holds ``train_config`` (a :class:`TrainConfig` dict), ``model_args``, ``feature_config``,
+    the split and, for PoseNets, ``groups_in``/``groups_out``. Inputs are normalised with
+    ``stats`` and fed to PoseNets through :func:`pose_inputs`.
+    """
+    if net not in NETS:
+        raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)}")
+    folder = Path(run_dir) / net
+    path = folder / ("best.pt" if which == "best" else "checkpoint.pt")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (has {net} been trained in {run_dir}?)")
+    ck = torch.load(path, map_location=device, weights_only=True)
+    meta = json.loads(ck["meta"])
+    cfg = TrainConfig.from_json(json.dumps(meta["train_config"]))
+    model = _build_model(net, cfg, meta["model_args"])
+    model.load_state_dict(ck["model"])
+    model.to(device).eval()
+    return model, FeatureStats.load(folder / "stats.npz"), meta
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="couch-train",
+        description="Train COUCH's ControlNet, PoseNet, ContactNet and the NSM+Control baseline "
+                    "on processed sequences (files, augmented.h5 datasets or folders).")
+    p.add_argument("data", nargs="+", help="processed .h5 files, augmented.h5 files or folders")
+    p.add_argument("-o", "--output", required=True, help="run folder (checkpoints, logs, cache)")
+    p.add_argument("--net", default="all", choices=[*NETS, "all"])
+    p.add_argument("--preset", default="paper", choices=list(PRESETS))
+    p.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1: fastest for these small nets)")
+    p.add_argument("--no-resume", action="store_true",
+                   help="start from scratch even if checkpoints exist")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``couch-train``; returns 0 on success, 2 on bad arguments or input."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # argparse already printed the usage line and the error
+        return int(e.code) if isinstance(e.code, int) else 2
+    if args.epochs is not None and args.epochs < 1:
+        print(f"couch-train: error: --epochs must be at least 1, got {args.epochs}",
+              file=sys.stderr)
+        return 2
+    if args.threads < 1:
+        print(f"couch-train: error: --threads must be at least 1, got {args.threads}",
+              file=sys.stderr)
+        return 2
+    try:
+        result = train(args.data, args.output, net=args.net, preset=args.preset,
+                       epochs=args.epochs, device=args.device, seed=args.seed,
+                       resume=not args.no_resume, progress=not args.quiet, threads=args.threads)
+    except (FileNotFoundError, ValueError, SchemaError) as e:
+        print(f"couch-train: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("couch-train: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    if not args.quiet:
+        for name, r in result.nets.items():
+            if r.history:
+                h0, h1 = r.history[0], r.history[-1]
+                print(f"{name}: epochs {r.epochs}, train {h0['train_loss']:.4g} -> "
+                      f"{h1['train_loss']:.4g}, val {h0['val_loss']:.4g} -> "
+                      f"{h1['val_loss']:.4g} ({r.seconds:.1f} s) in {r.dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,219 @@
+"""couch.synthesis.data and couch.synthesis.train on a few simulated sequences (ci preset).
+
+Budget: simulating the 5 sequences (~65 s) and one ``train(net="all", preset="ci")`` (~10 s)
+happen once per module; the other tests reuse them.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from couch.schema import SCHEMA_VERSION, read_processed, write_processed, write_session_group
+from couch.synthesis.data import (
+    FeatureCache,
+    FrameDataset,
+    WindowDataset,
+    build_cache,
+    collate_batch,
+    contact_rows,
+    find_sequences,
+    load_sequence,
+    split,
+)
+from couch.synthesis.features import LAYOUT, FeatureStats
+from couch.synthesis.train import NETS, load_trained, main, pose_inputs, train
+from couch.tools.sim.session import simulate_motion_dataset
+
+FILES = ("checkpoint.pt", "best.pt", "stats.npz", "log.csv", "curves.png")
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """Five simulated motion sequences (sofa and armchair; free, one- and two-hand contacts)."""
+    out = tmp_path_factory.mktemp("train_sim")
+    simulate_motion_dataset(out, 5, seed=11, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(sim, tmp_path_factory):
+    run = tmp_path_factory.mktemp("train_run")
+    return train([sim], run, net="all", preset="ci", progress=False, seed=0)
+
+
+def _log(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_all_nets_learn_and_write_their_files(trained):
+    for net in NETS:
+        r = trained.nets[net]
+        for name in FILES:
+            assert (r.dir / name).is_file(), f"{net}: {name} missing"
+        rows = _log(r.dir / "log.csv")
+        assert [int(row["epoch"]) for row in rows] == list(range(1, r.epochs + 1))
+        assert {"lr", "train_loss", "val_loss", "seconds"} <= set(rows[0])
+        assert r.train_loss[-1] < 0.8 * r.train_loss[0], (net, r.train_loss)
+        if net != "contact":  # ContactNet sees ~10 contact sets: validation is noise in ci
+            assert r.val_loss[-1] < r.val_loss[0], (net, r.val_loss)
+    # Component columns: Eq. 2 terms for ControlNet, per-target MSE for PoseNet, Eq. 4 terms.
+    assert {"train_traj", "train_phase", "train_reg", "val_traj"} <= set(
+        _log(trained.nets["control"].dir / "log.csv")[0])
+    assert "val_next_joint_positions" in _log(trained.nets["pose"].dir / "log.csv")[0]
+    assert {"train_recon", "train_kl"} <= set(_log(trained.nets["contact"].dir / "log.csv")[0])
+    ck = torch.load(trained.nets["pose"].dir / "checkpoint.pt", weights_only=True)
+    assert ck["epoch"] == trained.nets["pose"].epochs
+    assert {"model", "optimizer", "scheduler", "rng", "history", "meta"} <= set(ck)
+
+
+def test_resume_continues_and_reproduces(sim, trained, tmp_path):
+    first = train([sim], tmp_path, net="pose", preset="ci", progress=False, stop_after=2)
+    assert first.nets["pose"].epochs == 2
+    assert len(_log(tmp_path / "pose" / "log.csv")) == 2
+    second = train([sim], tmp_path, net="pose", preset="ci", progress=False)
+    r = second.nets["pose"]
+    assert second.cache_hit
+    assert r.resumed_from == 2
+    assert [h["epoch"] for h in r.history] == list(range(1, r.epochs + 1))
+    epochs = [int(row["epoch"]) for row in _log(tmp_path / "pose" / "log.csv")]
+    assert epochs == list(range(1, r.epochs + 1))  # one row per epoch, no duplicates
+    ref = trained.nets["pose"].history[-1]
+    assert r.history[-1]["val_loss"] == pytest.approx(ref["val_loss"], rel=1e-4)
+    assert r.history[-1]["train_loss"] == pytest.approx(ref["train_loss"], rel=1e-4)
+    # A finished run resumes to "nothing left to do" and keeps its log.
+    third = train([sim], tmp_path, net="pose", preset="ci", progress=False)
+    assert third.nets["pose"].resumed_from == r.epochs
+    assert len(_log(tmp_path / "pose" / "log.csv")) == r.epochs
+    # Different settings must not silently continue an old run.
+    with pytest.raises(ValueError, match=r"checkpoint\.pt"):
+        train([sim], tmp_path, net="pose", preset="ci", epochs=9, progress=False)
+
+
+def test_load_trained_matches_the_trained_model(trained):
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, _ = split(cache)
+    rows = cache.sequence_rows(train_seqs)[:16]
+    with torch.no_grad():
+        for net in ("pose", "baseline"):
+            model, stats, meta = load_trained(trained.run_dir, net, which="last")
+            ds = FrameDataset(cache, meta["groups_in"], meta["groups_out"], rows, stats)
+            x, _ = collate_batch(ds.__getitems__(range(len(rows))))
+            ref = trained.nets[net].model.eval()
+            assert torch.equal(model(pose_inputs(x, net))[0], ref(pose_inputs(x, net))[0])
+            assert set(meta["groups_out"]) == set(LAYOUT["posenet"]["targets"])
+        model, stats, _ = load_trained(trained.run_dir, "control", which="last")
+        batch = WindowDataset(cache, 20, sequences=train_seqs, stats=stats).__getitems__([0, 1])
+        control = torch.cat([batch["control_line"], batch["hand_phases"]], -1)
+        ref = trained.nets["control"].model.eval()
+        assert torch.equal(model(batch["joint_positions"], control)[0],
+                           ref(batch["joint_positions"], control)[0])
+        model, stats, _ = load_trained(trained.run_dir, "contact", which="last")
+        ds = FrameDataset(cache, ["contact_condition"], ["hand_contacts"],
+                          contact_rows(cache, train_seqs), stats)
+        x, y = ds.__getitems__(range(len(ds)))
+        ref = trained.nets["contact"].model.eval()
+        mu, _ = model.encode(y["hand_contacts"], x["contact_condition"])
+        assert torch.equal(mu, ref.encode(y["hand_contacts"], x["contact_condition"])[0])
+        best, _, meta = load_trained(trained.run_dir, "contact")  # best.pt
+        assert meta["train_config"]["preset"] == "ci"
+        assert best.sample(x["contact_condition"][:2], 3).shape == (2, 3, 6)
+    assert isinstance(FeatureStats.load(trained.nets["pose"].dir / "stats.npz"), FeatureStats)
+
+
+def test_cache_reused_then_rebuilt_and_skips(sim, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    for name in ("motion_00000.h5", "motion_00004.h5"):
+        shutil.copy2(sim / name, data / name)
+    # A one-frame sequence has no t -> t+1 pair: skipped with a reason, not fatal.
+    s = read_processed(sim / "motion_00001.h5")
+    one = {f: getattr(s, f)[:1] for f in ("time", "global_orient", "body_pose", "transl",
+                                          "joints", "object_frame_poses", "contact_active",
+                                          "contact_points", "interaction")}
+    write_processed(data / "motion_00009.h5",
+                    dataclasses.replace(s, session="one_frame", quality={}, **one))
+    out = tmp_path / "features.h5"
+    cache = build_cache(find_sequences([data]), out, progress=False)
+    assert not cache.hit
+    assert cache.num_sequences == 2 and len(cache.skipped) == 1
+    assert "motion_00009" in cache.skipped[0][0]
+    assert cache.num_rows == int(cache.offsets[-1]) == cache.group("joint_positions").shape[0]
+    assert cache.group("contact_condition").shape == (2, 2048)
+    assert cache.group("contact_inputs").shape == (cache.num_rows, 8)
+    mtime = out.stat().st_mtime_ns
+    again = build_cache(find_sequences([data]), out, progress=False)
+    assert again.hit and out.stat().st_mtime_ns == mtime
+    src = data / "motion_00000.h5"
+    st = src.stat()
+    os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))
+    rebuilt = build_cache(find_sequences([data]), out, progress=False)
+    assert not rebuilt.hit and out.stat().st_mtime_ns != mtime
+    # Windows stay inside one sequence; short sequences give none but still count for PoseNet.
+    w = WindowDataset(rebuilt, window=400)
+    assert w.too_short >= 1
+    for start in w.starts:
+        seq = rebuilt.row_sequence[start]
+        assert start + 400 <= rebuilt.offsets[seq + 1]
+
+
+def test_find_sequences_reads_augmented_groups(sim, tmp_path):
+    path = tmp_path / "aug" / "augmented.h5"
+    path.parent.mkdir()
+    with h5py.File(path, "w") as h5:
+        h5.attrs.update(schema_version=SCHEMA_VERSION, kind="augmented")
+        for i, name in enumerate(("motion_00000.h5", "motion_00003.h5")):
+            s = read_processed(sim / name)
+            write_session_group(h5.create_group(f"seq{i}"),
+                                dataclasses.replace(s, session=f"seq{i}"))
+    (tmp_path / "aug" / "notes.h5").write_bytes(b"")  # foreign file in a folder: ignored
+    refs = find_sequences([tmp_path / "aug"])
+    assert [r.group for r in refs] == ["seq0", "seq1"]
+    assert load_sequence(refs[1]).session == "seq1"
+    assert find_sequences([path, path]) == refs  # duplicates dropped
+
+
+def test_split_holds_out_chairs(trained):
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, val_seqs = split(cache)
+    assert len(val_seqs) == 1 and len(train_seqs) == cache.num_sequences - 1  # 2 chairs: by seq
+    cache.object_names = ["a", "b", "c", "a", "b"]
+    train_seqs, val_seqs = split(cache, val_fraction=0.3, seed=1)
+    held = {cache.object_names[i] for i in val_seqs}
+    assert held and held.isdisjoint(cache.object_names[i] for i in train_seqs)
+    assert sorted([*train_seqs, *val_seqs]) == list(range(cache.num_sequences))
+
+
+def test_main_reports_bad_inputs(tmp_path, capsys):
+    missing = tmp_path / "nope"
+    assert main([str(missing), "-o", str(tmp_path / "run"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main([str(empty), "-o", str(tmp_path / "run"), "-q"]) == 2
+    assert str(empty) in capsys.readouterr().err
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as h5:
+        h5["x"] = np.zeros(3)
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert str(foreign) in err and "schema_version" in err
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "--net", "posenet"]) == 2
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "--epochs", "0"]) == 2
+
+
+def test_main_trains_and_resumes_finished_run(sim, trained, capsys):
+    # Everything is finished already: resume loads the checkpoint and has nothing left to do.
+    assert main([str(sim), "-o", str(trained.run_dir), "--net", "contact", "--preset", "ci",
+                 "-q"]) == 0
+    rows = _log(trained.nets["contact"].dir / "log.csv")
+    assert len(rows) == trained.nets["contact"].epochs
