@@ -92,3 +92,15 @@ def test_motion_only_dataset(tmp_path):
     simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
     assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
                           first.joints)  # deterministic by seed
+
+
+def test_motion_only_dataset_skips_an_implausible_slot(tmp_path):
+    # seed 3's first slot has its only draw rejected: it is skipped and named, the rest written
+    summary = simulate_motion_dataset(tmp_path, 2, seed=3, duration=4.0, progress=False,
+                                      max_draws=1)
+    assert [s["sequence"] for s in summary["skipped"]][:1] == [0]
+    assert "plausible" in summary["skipped"][0]["reason"]
+    assert len(summary["sequences"]) + len(summary["skipped"]) == 2
+    assert not (tmp_path / "motion_00000.h5").exists()
+    with pytest.raises(ValueError, match="--chair must be one of"):
+        simulate_motion_dataset(tmp_path / "bad", 1, seed=3, chair="throne", progress=False)

@@ -107,6 +107,10 @@ def _chair(rng: np.random.Generator, chair: str | None, interaction: str) -> tup
     return make_chair(random_chair_spec(rng, kind)), kind
 
 
+class NoPlausibleSequence(ValueError):
+    """Every draw of a sequence was rejected (an unlucky chair/subject, not a bad argument)."""
+
+
 def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyModel, *,
                       interaction: str | None = None, chair: str | None = None,
                       duration: float | None = None, max_draws: int = 25,
@@ -140,26 +144,36 @@ def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyMo
                                    faces=the_chair.faces, world_from_chair=world_from_chair,
                                    chair_from_scan=invert_transform(scan_pose(rng)))
         return SimulatedSequence(motion, the_chair, kind, placement, draw)
-    raise ValueError(f"could not generate a plausible {interaction!r} sequence on this chair in "
-                     f"{max_draws} draws (last: {last_error})")
+    raise NoPlausibleSequence(f"could not generate a plausible {interaction!r} sequence on this "
+                              f"chair in {max_draws} draws (last: {last_error})")
 
 
 def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                             duration: float | None = None, fps: float = 30.0,
                             interaction: str | None = None, chair: str | None = None,
-                            progress: bool = True) -> dict[str, Any]:
-    """``--motion-only``: ground-truth motions, no rendering. Returns the index it writes."""
+                            progress: bool = True, max_draws: int = 25) -> dict[str, Any]:
+    """``--motion-only``: ground-truth motions, no rendering. Returns the index it writes.
+
+    A slot whose ``max_draws`` draws are all rejected is skipped and listed under ``"skipped"``
+    (sequence number and reason); bad arguments still raise ``ValueError``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model, coarse = load_body_model("couch-body"), load_body_model("couch-body-coarse")
     streams = np.random.SeedSequence(seed).spawn(sequences)
     index = []
+    skipped = []
     frames = 0
     start = wallclock.perf_counter()
     for i in tqdm(range(sequences), desc="sequences", disable=not progress):
         rng = np.random.default_rng(streams[i])
-        seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
-                                duration=duration)
+        try:
+            seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
+                                    duration=duration, max_draws=max_draws)
+        except NoPlausibleSequence as e:
+            # One unlucky chair/subject draw must not throw away the whole dataset: the slot
+            # is skipped, counted and named in index.json.
+            skipped.append({"sequence": i, "reason": str(e)})
+            continue
         times = np.arange(0.0, seq.motion.duration, 1.0 / fps)
         name = f"motion_{i:05d}"
         truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=fps)
@@ -169,7 +183,8 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                       "chair": seq.chair_kind, "frames": len(times),
                       "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected})
     summary = {"couch_version": __version__, "seed": seed, "fps": fps, "sequences": index,
-               "frames": frames, "seconds": round(wallclock.perf_counter() - start, 2)}
+               "skipped": skipped, "frames": frames,
+               "seconds": round(wallclock.perf_counter() - start, 2)}
     with atomic_path(out / "index.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
     return summary
@@ -301,6 +316,8 @@ def main(argv: list[str] | None = None) -> int:
                 progress=not args.quiet)
             print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
                   f"to {args.out_dir} in {summary['seconds']} s")
+            for s in summary["skipped"]:
+                print(f"skipped sequence {s['sequence']}: {s['reason']}", file=sys.stderr)
             return 0
         cfg = SessionConfig(**{k: v for k, v in vars(args).items()
                                if k in SessionConfig.__dataclass_fields__})
