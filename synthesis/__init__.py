@@ -1,7 +1,6 @@
 """Synthesis stage: COUCH's ControlNet, PoseNet and ContactNet, their features and training.
 
-Public API so far (the runtime controller, ``couch-synthesize``, the baseline harness and
-``couch-eval`` are still to come):
+Public API so far (``couch-eval`` and its protocol are still to come):
 
 - ``features.py``: :class:`FeatureConfig` (the paper's numbers), :func:`sequence_features`
   (J, T, G, I, E, hand local phases, global phase, control signals and every network target of
@@ -14,15 +13,35 @@ Public API so far (the runtime controller, ``couch-synthesize``, the baseline ha
   sources are unchanged), :class:`FeatureCache`, :func:`split` (held-out chairs).
 - ``train.py``: :func:`train` and ``couch-train`` (presets ``paper`` and ``ci``, checkpoints,
   resume, ``log.csv`` + ``curves.png``), :func:`load_trained`.
+- ``controller.py``: :class:`Synthesizer` (the runtime controller: PoseNet alone on the
+  approach, ControlNet switched on near each contact, series of contacts, batched characters;
+  ``method="baseline"`` runs NSM+Control in the same loop), :class:`Scene`,
+  :class:`SynthesisResult`, :func:`yaw_transform`.
+- ``sampling.py``: :func:`sample_contacts` (ContactNet samples projected onto the chair).
+- ``export.py``: :func:`save_npz`, :func:`to_processed`, :func:`write_processed_sessions`.
+- ``metrics.py``: ACE, AP@k, APD, contact APD, foot sliding, penetration, :func:`format_table`.
 """
 
+from couch.synthesis.controller import METHODS, Scene, SynthesisResult, Synthesizer, yaw_transform
 from couch.synthesis.data import FeatureCache, SequenceRef, build_cache, find_sequences, split
+from couch.synthesis.export import save_npz, to_processed, write_processed_sessions
 from couch.synthesis.features import (
     LAYOUT,
     FeatureConfig,
     FeatureStats,
     SequenceFeatures,
     sequence_features,
+)
+from couch.synthesis.metrics import (
+    ace,
+    apd,
+    closest_hand_distances,
+    contact_apd,
+    contact_precision,
+    foot_sliding,
+    format_table,
+    penetration,
+    pose_feature_apd,
 )
 from couch.synthesis.nets import (
     ContactNet,
@@ -35,10 +54,12 @@ from couch.synthesis.nets import (
     project_contacts,
     rollout,
 )
+from couch.synthesis.sampling import sample_contacts
 from couch.synthesis.train import TrainConfig, TrainResult, load_trained, train
 
 __all__ = [
     "LAYOUT",
+    "METHODS",
     "ContactNet",
     "ContactNetConfig",
     "ControlNet",
@@ -48,17 +69,34 @@ __all__ = [
     "FeatureStats",
     "PoseNet",
     "PoseNetConfig",
+    "Scene",
     "SequenceFeatures",
     "SequenceRef",
+    "SynthesisResult",
+    "Synthesizer",
     "TrainConfig",
     "TrainResult",
+    "ace",
+    "apd",
     "build_cache",
+    "closest_hand_distances",
+    "contact_apd",
+    "contact_precision",
     "control_loss",
     "find_sequences",
+    "foot_sliding",
+    "format_table",
     "load_trained",
+    "penetration",
+    "pose_feature_apd",
     "project_contacts",
     "rollout",
+    "sample_contacts",
+    "save_npz",
     "sequence_features",
     "split",
+    "to_processed",
     "train",
+    "write_processed_sessions",
+    "yaw_transform",
 ]

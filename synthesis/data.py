@@ -46,6 +46,7 @@ from couch.synthesis.features import (
     FeatureConfig,
     FeatureStats,
     OccupancyGrid,
+    canonical_chair,
     sequence_features,
     voxel_grid,
 )
@@ -70,7 +71,7 @@ __all__ = [
 ]
 
 #: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: chairs in the canonical chair frame
 #: Groups that hold the same value on every row of a sequence; stored once per sequence.
 PER_SEQUENCE_GROUPS: tuple[str, ...] = ("contact_condition",)
 #: File names a folder search always treats as sequences (other ``.h5`` files need the schema's
@@ -325,7 +326,7 @@ def build_cache(refs: Sequence[SequenceRef], out_path: str | os.PathLike,
         per_seq: dict[str, list[np.ndarray]] = {}
         for ref in tqdm(refs, desc="features", unit="seq", disable=not progress):
             try:
-                session = load_sequence(ref)
+                session = canonical_chair(load_sequence(ref))
                 # Consecutive sequences on the same chair (simulator folders, augmented groups of
                 # one shape) share the voxelisation and the occupancy grid, the slow part.
                 ckey = (session.object_name,

@@ -66,6 +66,10 @@ class FeatureConfig:
     hand_approach: float = 1.0  # s: longest reach before a hand contact onset
     hand_approach_speed: float = 0.15  # m/s: hand speed that starts the reach in that window
     hand_release: float = 0.5  # s: local phase falls from 1 to 0 over this after a release
+    # m: a hand's control (target, C+, the baseline's contact inputs) is on only while the root
+    # is this close to the target horizontally: the runtime approaches with PoseNet alone and
+    # switches ControlNet on near the chair (paper Sec. 4.5), so training sees the same.
+    control_radius: float = 1.5
     sit_transition: float = 1.5  # s: longest sit-down transition (global phase 0 -> 1)
     step_min_interval: float = 0.4  # s: closest two left-foot strikes may be
     walk_cycle: float = 1.0  # s: nominal cycle when fewer than two strikes are found
@@ -164,6 +168,25 @@ def _nearest_index(t_old: np.ndarray, t_new: np.ndarray) -> np.ndarray:
     hi = np.clip(np.searchsorted(t_old, t_new), 0, len(t_old) - 1)
     lo = np.clip(hi - 1, 0, len(t_old) - 1)
     return np.where(np.abs(t_new - t_old[lo]) <= np.abs(t_old[hi] - t_new), lo, hi)
+
+
+def canonical_chair(session: ProcessedSession) -> ProcessedSession:
+    """``session`` with its chair expressed in the canonical chair frame (seat centred on
+    x = z = 0, floor y = 0, facing +Z; :func:`couch.augment.canonical_chair_frame`) instead of
+    the frame it was captured or scanned in, so that I, ContactNet's condition and its contacts
+    mean the same thing for every chair, and the runtime (which is given chair-frame meshes)
+    sees what training saw. The world is unchanged: only ``object_vertices``, ``object_pose``
+    and ``object_frame_poses`` are re-expressed."""
+    from couch.augment import canonical_chair_frame  # heavy imports, only needed here
+
+    pose = np.asarray(session.object_pose, np.float64)
+    world = apply_transform(pose, np.asarray(session.object_vertices, np.float64))
+    canonical = canonical_chair_frame(world, np.asarray(session.object_faces))
+    old_from_new = invert_transform(pose) @ canonical
+    return dataclasses.replace(
+        session, object_pose=canonical,
+        object_vertices=apply_transform(invert_transform(canonical), world).astype(np.float32),
+        object_frame_poses=np.asarray(session.object_frame_poses, np.float64) @ old_from_new)
 
 
 # ----------------------------------------------------------------------------- root and J
@@ -586,6 +609,14 @@ def global_phase(strikes: np.ndarray, sitting: np.ndarray, cfg: FeatureConfig,
     return phase
 
 
+def control_near(root: np.ndarray, targets: np.ndarray, radius: float) -> np.ndarray:
+    """(..., 2) bool: each hand's target (..., 2, 3) world (NaN = none) lies within ``radius``
+    m of the root (..., 4, 4) origin horizontally."""
+    d = targets - root[..., None, :3, 3]
+    with np.errstate(invalid="ignore"):
+        return np.hypot(d[..., 0], d[..., 2]) < radius
+
+
 def control_line(hand: np.ndarray, target: np.ndarray, mask: np.ndarray, root: np.ndarray,
                  samples: int = 7) -> np.ndarray:
     """ControlNet input h̃: (..., 2, samples, 3) points spaced uniformly on the straight line
@@ -840,6 +871,7 @@ def sequence_features(session: ProcessedSession, config: FeatureConfig | None = 
         mask.append(m)
         phases.append(local_phase(active[:, i], hand_speed[:, h], cfg))
     targets, mask, phases = np.stack(targets, 1), np.stack(mask, 1), np.stack(phases, 1)
+    mask &= control_near(root, targets, cfg.control_radius)
     hand_phases = phases[sample_indices(n, cfg.trajectory_offsets)].transpose(0, 2, 1)
     safe_targets = np.where(mask[..., None], targets, 0.0)
     line = control_line(hands, safe_targets, mask, root, cfg.control_samples)

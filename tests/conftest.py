@@ -57,3 +57,23 @@ def processed_session(coarse_model) -> ProcessedSession:
         object_frame_poses=np.repeat(pose_obj[None], t, axis=0), contact_active=active,
         contact_points=points, interaction=labels, quality={"fit_error_mm": np.ones(t)},
     )
+
+
+@pytest.fixture(scope="session")
+def motion_sim(tmp_path_factory):
+    """Five simulated motion sequences (sofa and armchair; free, one- and two-hand contacts)."""
+    from couch.tools.sim.session import simulate_motion_dataset
+
+    out = tmp_path_factory.mktemp("train_sim")
+    simulate_motion_dataset(out, 5, seed=11, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def ci_run(motion_sim, tmp_path_factory):
+    """Every network trained with the ``ci`` preset on :func:`motion_sim` (a TrainResult)."""
+    from couch.synthesis.train import train
+
+    run = tmp_path_factory.mktemp("train_run")
+    return train([motion_sim], run, net="all", preset="ci", progress=False, seed=0)
+

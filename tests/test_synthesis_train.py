@@ -1,7 +1,8 @@
 """couch.synthesis.data and couch.synthesis.train on a few simulated sequences (ci preset).
 
 Budget: simulating the 5 sequences (~65 s) and one ``train(net="all", preset="ci")`` (~10 s)
-happen once per module; the other tests reuse them.
+happen once per test session (``motion_sim``, ``ci_run`` in conftest.py); the other tests and
+the controller's tests reuse them.
 """
 
 from __future__ import annotations
@@ -30,23 +31,18 @@ from couch.synthesis.data import (
 )
 from couch.synthesis.features import LAYOUT, FeatureStats
 from couch.synthesis.train import NETS, load_trained, main, pose_inputs, train
-from couch.tools.sim.session import simulate_motion_dataset
 
 FILES = ("checkpoint.pt", "best.pt", "stats.npz", "log.csv", "curves.png")
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    """Five simulated motion sequences (sofa and armchair; free, one- and two-hand contacts)."""
-    out = tmp_path_factory.mktemp("train_sim")
-    simulate_motion_dataset(out, 5, seed=11, progress=False)
-    return out
+def sim(motion_sim):
+    return motion_sim
 
 
 @pytest.fixture(scope="module")
-def trained(sim, tmp_path_factory):
-    run = tmp_path_factory.mktemp("train_run")
-    return train([sim], run, net="all", preset="ci", progress=False, seed=0)
+def trained(ci_run):
+    return ci_run
 
 
 def _log(path):

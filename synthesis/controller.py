@@ -1,0 +1,449 @@
+"""The runtime controller: trained PoseNet (+ ControlNet) driven frame by frame for a batch of
+characters approaching one chair, sitting, and reaching a series of hand contacts.
+
+Paper Sec. 4.5: the character approaches with the PoseNet alone; a hand's ControlNet input is
+switched on once the character is within :attr:`FeatureConfig.control_radius` of that hand's
+contact (the training features apply the same rule), and a "no contact" hand (NaN target) has
+its control zeroed. ControlNet runs closed loop: the first active frame of a contact reads the
+straight line from the hand to the contact, later frames read its own previous prediction (the
+scheduled-sampling end state it was trained towards). The NSM+Control baseline runs in the same
+loop with the raw contacts (``contact_inputs``) in place of ControlNet's C+.
+
+Everything is vectorised over the batch of characters (B); the loop runs over frames, as any
+autoregressive controller must. Frames: world metres, +Y up, floor y = 0; the chair mesh is
+given in its chair frame (DESIGN.md: seat centred on x = z = 0, facing +Z) and placed by
+``world_from_chair``. Hand order is (left, right); the hands are SMPL joints 22/23.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from couch.body import JOINT_INDEX, PARENTS, load_body_model, standing_pose
+from couch.geometry import apply_transform, invert_transform, make_transform
+from couch.rotations import matrix_to_6d, matrix_to_axis_angle, sixd_to_matrix
+from couch.synthesis.data import feature_config_from_json
+from couch.synthesis.features import (
+    SIT,
+    FeatureConfig,
+    OccupancyGrid,
+    control_line,
+    control_near,
+    ego_features,
+    integrate_root,
+    interaction_features,
+    relative_root,
+    root_transforms,
+    to_root,
+    voxel_grid,
+)
+from couch.synthesis.train import load_trained, pose_inputs
+
+__all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"]
+
+#: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
+METHODS: tuple[str, ...] = ("couch", "baseline")
+
+
+def yaw_transform(x: float | np.ndarray, z: float | np.ndarray,
+                  heading: float | np.ndarray) -> np.ndarray:
+    """(..., 4, 4) root-like poses on the floor at (x, 0, z) whose forward (+Z) axis is turned
+    by ``heading`` radians from world +Z towards +X."""
+    h = np.asarray(heading, np.float64)
+    c, s = np.cos(h), np.sin(h)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    rot = np.stack([np.stack([c, zero, s], -1), np.stack([zero, one, zero], -1),
+                    np.stack([-s, zero, c], -1)], -2)
+    return make_transform(rot, np.stack(np.broadcast_arrays(
+        np.asarray(x, np.float64), zero, np.asarray(z, np.float64)), -1))
+
+
+@dataclasses.dataclass(eq=False)
+class Scene:
+    """One chair placed in the world, with everything the features read precomputed.
+
+    vertices (V,3) / faces (F,3) in the chair frame; world_from_chair (4,4); occupancy (512,)
+    and centres_world (512,3) of the 8^3 interaction voxels; grid the fine occupancy for E;
+    goal (4,4) the sit goal root (seat centre on the floor, facing the chair's front).
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    world_from_chair: np.ndarray
+    occupancy: np.ndarray
+    centres_world: np.ndarray
+    grid: OccupancyGrid
+    goal: np.ndarray
+
+    @classmethod
+    def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, cfg: FeatureConfig,
+                  world_from_chair: np.ndarray | None = None, name: str = "chair") -> Scene:
+        """Precompute a chair (chair frame, metres) for synthesis."""
+        v = np.asarray(vertices, np.float64)
+        f = np.asarray(faces, np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or f.ndim != 2 or f.shape[1] != 3:
+            raise ValueError(f"{name}: expected (V,3) vertices and (F,3) faces, got "
+                             f"{v.shape} and {f.shape}")
+        pose = np.eye(4) if world_from_chair is None else np.asarray(world_from_chair, float)
+        occupancy, centres, _ = voxel_grid(v, f, cfg.interaction_resolution,
+                                           cfg.interaction_subsamples)
+        grid = OccupancyGrid.from_mesh(v, f, pose, cfg.occupancy_voxel)
+        return cls(name, v, f, pose, occupancy, apply_transform(pose, centres), grid,
+                   pose @ sit_goal(v, f))
+
+
+def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(4,4) chair-frame root pose of a sitter: the seat's centre (:func:`couch.augment.
+    segment_parts`) on the floor, facing +Z. Falls back to the origin if no seat is found."""
+    from couch.augment import segment_parts  # heavy (trimesh, open3d); only needed here
+
+    try:
+        parts = segment_parts(vertices, faces)
+        centre = parts.frames["seat"].centre if parts.has("seat") else np.zeros(3)
+    except ValueError:
+        centre = np.zeros(3)
+    return yaw_transform(centre[0], centre[2], 0.0)
+
+
+@dataclasses.dataclass
+class SynthesisResult:
+    """B synthesised motions of T frames at ``fps`` (world frame, metres, radians).
+
+    root (B,T,4,4) world_from_root; joints (B,T,24,3) from the SMPL parameters (forward
+    kinematics of the bundled body's rest skeleton); global_orient (B,T,3), body_pose (B,T,69)
+    axis-angle, transl (B,T,3), betas (10,) (the mean shape); hands (B,T,2,3) the hand joints
+    22/23 the controller steered; targets (B,T,2,3) each frame's active contact per hand (NaN:
+    none); control_on (B,T,2) whether the hand's control was on; series (B,S,2,3) the contact
+    sets asked for, in order; series_index (B,T) which set was active; global_phase (B,T);
+    contacts (B,T,5) predicted contact labels (pelvis, hands, feet; 0..1).
+    """
+
+    method: str
+    fps: float
+    scene: Scene
+    root: np.ndarray
+    joints: np.ndarray
+    global_orient: np.ndarray
+    body_pose: np.ndarray
+    transl: np.ndarray
+    betas: np.ndarray
+    hands: np.ndarray
+    targets: np.ndarray
+    control_on: np.ndarray
+    series: np.ndarray
+    series_index: np.ndarray
+    global_phase: np.ndarray
+    contacts: np.ndarray
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.root.shape[1])
+
+
+@dataclasses.dataclass
+class _State:
+    """Per-character controller state, every array batch-first (B)."""
+
+    root: np.ndarray  # (B,4,4)
+    jpos: np.ndarray  # (B,22,3) root frame
+    jrot: np.ndarray  # (B,22,6) root frame
+    jvel: np.ndarray  # (B,22,3) m/s, root frame
+    future: np.ndarray  # (B,7,12) trajectory samples at offsets >= 0, relative to root
+    phase: np.ndarray  # (B,) global phase
+    hist_root: np.ndarray  # (B,H,4,4) the last H roots, oldest first (H = -min offset)
+    hist_action: np.ndarray  # (B,H,3)
+    hist_hphase: np.ndarray  # (B,H,2) hands' local phases
+    line: np.ndarray  # (B,2,7,3) ControlNet's fed-back control input
+    c_phase: np.ndarray  # (B,2,7) last predicted local phases
+    on: np.ndarray  # (B,2) bool, control was on last frame
+    lstm: tuple[torch.Tensor, torch.Tensor] | None
+    index: np.ndarray  # (B,) int, active contact set
+    since: np.ndarray  # (B,) frames since that set became active
+    held: np.ndarray  # (B,) frames all its hands have been within reach
+
+
+class Synthesizer:
+    """Loads a trained run (``couch-train`` output) and synthesises motions with it.
+
+    Args:
+        run_dir: the run folder. ``method`` "couch" needs its ``pose`` and ``control`` nets,
+            "baseline" its ``baseline`` net; ``which`` "best" or "last" checkpoints.
+        hold: seconds a contact set is held (all its hands within ``reach`` m) before the next
+            set of a series starts; ``timeout``: seconds after which it starts anyway.
+    """
+
+    def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
+                 device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
+                 timeout: float = 5.0) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        self.method, self.device = method, torch.device(device)
+        net = "pose" if method == "couch" else "baseline"
+        self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which, device)
+        self.cfg = feature_config_from_json(json.dumps(meta["feature_config"]))
+        self.groups_in, self.groups_out = list(meta["groups_in"]), list(meta["groups_out"])
+        self.widths = {g: int(self.pose_stats.mean[g].size) for g in self.groups_out}
+        self.control_net = None
+        if method == "couch":
+            self.control_net, self.control_stats, _ = load_trained(run_dir, "control", which,
+                                                                  device)
+        self.hold, self.reach, self.timeout = hold, reach, timeout
+        self._body_setup()
+
+    # ------------------------------------------------------------------ body helpers
+
+    def _body_setup(self) -> None:
+        model = load_body_model("couch-body")
+        self.betas = np.zeros(10, np.float32)
+        rest = model.rest_joints(torch.zeros(1, 10, dtype=model.dtype))[0].double()
+        self.rest = rest.numpy()  # (24,3)
+        self.parents = torch.as_tensor(np.asarray(PARENTS), dtype=torch.long)
+        wrists = [JOINT_INDEX["left_wrist"], JOINT_INDEX["right_wrist"]]
+        self.wrists = np.array(wrists)
+        # Hand joints 22/23 hang off the wrists by their rest offsets (rotated by the wrists).
+        self.hand_offsets = self.rest[list(self.cfg.hand_joints)] - self.rest[wrists]
+        out = model(global_orient=np.zeros((1, 3)), body_pose=standing_pose()[None])
+        joints = out.joints[0].detach().double().numpy()
+        joints[:, 1] -= out.vertices[0, :, 1].min().item()  # feet on the floor
+        rots = out.joint_transforms[0, :, :3, :3].detach().double().numpy()
+        root = root_transforms(joints)
+        self.init_jpos = to_root(joints[:self.cfg.num_joints], root)
+        self.init_jrot = matrix_to_6d(root[:3, :3].T @ rots[:self.cfg.num_joints])
+
+    def _hands(self, root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray) -> np.ndarray:
+        """(B,2,3) world hand joints from root (B,4,4) and root-frame J (B,22,3)/(B,22,6)."""
+        wrist_rot = sixd_to_matrix(jrot[:, self.wrists])  # (B,2,3,3) root frame
+        local = jpos[:, self.wrists] + np.einsum("bhij,hj->bhi", wrist_rot, self.hand_offsets)
+        return apply_transform(root, local)
+
+    def smpl(self, root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """SMPL parameters from (N,4,4) roots and root-frame J: global_orient (N,3), body_pose
+        (N,69) (hand joints 22/23 at rest), transl (N,3) and FK joints (N,24,3), all world."""
+        n = len(root)
+        rel = sixd_to_matrix(np.asarray(jrot, np.float64))  # (N,22,3,3)
+        world = np.einsum("nij,nkjl->nkil", root[:, :3, :3], rel)
+        parent = np.asarray(PARENTS[1:self.cfg.num_joints])
+        local = np.einsum("nkji,nkjl->nkil", world[:, parent], world[:, 1:])
+        body = np.zeros((n, 23, 3))
+        body[:, :self.cfg.num_joints - 1] = matrix_to_axis_angle(local)
+        global_orient = matrix_to_axis_angle(world[:, 0])
+        pelvis = apply_transform(root, jpos[:, :1])[:, 0]
+        transl = pelvis - self.rest[0]
+        rots = np.concatenate([world[:, :1], local, np.broadcast_to(np.eye(3), (n, 2, 3, 3))],
+                              axis=1)
+        fk, _ = _fk(torch.as_tensor(rots), torch.as_tensor(self.rest), self.parents)
+        return global_orient, body.reshape(n, 69), transl, fk.numpy() + transl[:, None]
+
+    # ------------------------------------------------------------------ the loop
+
+    def _initial_state(self, scene: Scene, starts: np.ndarray, batch: int) -> _State:
+        cfg = self.cfg
+        root = yaw_transform(starts[:, 0], starts[:, 1], starts[:, 2])
+        h = int(-cfg.trajectory_offsets.min())
+        fut = cfg.trajectory_offsets[cfg.future_samples]
+        # The first second's trajectory walks straight at the goal at 1 m/s: the network's own
+        # prediction takes over after one frame.
+        to_goal = to_root(scene.goal[:3, 3][None, None], root)[:, 0]  # (B,3)
+        heading = np.arctan2(to_goal[:, 0], to_goal[:, 2])
+        dist = np.minimum(np.hypot(to_goal[:, 0], to_goal[:, 2])[:, None], fut[None] / cfg.fps)
+        future_root = root[:, None] @ yaw_transform(dist * np.sin(heading)[:, None],
+                                                    dist * np.cos(heading)[:, None],
+                                                    heading[:, None] * np.ones_like(dist))
+        walk = np.broadcast_to(np.eye(3)[1], (batch, len(fut), 3))
+        future = np.concatenate([relative_root(root[:, None], future_root), walk], -1)
+        idle = np.broadcast_to(np.eye(3)[0], (batch, h, 3)).copy()
+        return _State(
+            root=root, jpos=np.broadcast_to(self.init_jpos, (batch, *self.init_jpos.shape)).copy(),
+            jrot=np.broadcast_to(self.init_jrot, (batch, *self.init_jrot.shape)).copy(),
+            jvel=np.zeros((batch, cfg.num_joints, 3)), future=future, phase=np.zeros(batch),
+            hist_root=np.repeat(root[:, None], h, 1), hist_action=idle,
+            hist_hphase=np.zeros((batch, h, 2)),
+            line=np.zeros((batch, 2, cfg.control_samples, 3)),
+            c_phase=np.zeros((batch, 2, cfg.control_samples)), on=np.zeros((batch, 2), bool),
+            lstm=None, index=np.zeros(batch, np.int64), since=np.zeros(batch, np.int64),
+            held=np.zeros(batch, np.int64))
+
+    def _norm(self, stats, groups: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        return {g: torch.as_tensor(stats.normalize(g, x.reshape(len(x), -1)).astype(np.float32),
+                                   device=self.device) for g, x in groups.items()}
+
+    def _control(self, s: _State, hands: np.ndarray, targets: np.ndarray, mask: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """ControlNet step: C+ (B,2,7,3) and phases (B,2,7), zero for hands whose control is
+        off; resets the LSTM of characters whose control just switched on."""
+        cfg, batch = self.cfg, len(hands)
+        net = self.control_net
+        assert net is not None
+        fresh = mask & ~s.on
+        straight = control_line(hands, np.where(mask[..., None], targets, 0.0), mask, s.root,
+                                cfg.control_samples)
+        line = np.where(fresh[..., None, None], straight, s.line) * mask[..., None, None]
+        offsets = cfg.trajectory_offsets
+        past = s.hist_hphase[:, s.hist_hphase.shape[1] + offsets[offsets < 0]]
+        hphase = np.concatenate([past.transpose(0, 2, 1), s.c_phase], -1)  # (B,2,13)
+        hphase = hphase * mask[..., None]
+        if s.lstm is None:
+            s.lstm = net.initial_state(batch, self.device)
+        restart = fresh.any(-1) & ~s.on.any(-1)
+        if restart.any():
+            h0, c0 = net.initial_state(int(restart.sum()), self.device)
+            idx = torch.as_tensor(np.flatnonzero(restart), device=self.device)
+            s.lstm[0][:, idx], s.lstm[1][:, idx] = h0, c0
+        x = self._norm(self.control_stats, {"joint_positions": s.jpos, "control_line": line,
+                                            "hand_phases": hphase})
+        control = torch.cat([x["control_line"], x["hand_phases"]], -1)
+        with torch.no_grad():
+            out, s.lstm = net.step(x["joint_positions"], control, s.lstm)
+        out = out.cpu().numpy().astype(np.float64)
+        n_pos = line[0].size
+        pos = self.control_stats.denormalize("next_control_positions", out[:, :n_pos])
+        ph = self.control_stats.denormalize("next_control_phases", out[:, n_pos:])
+        pos = pos.reshape(line.shape) * mask[..., None, None]
+        ph = np.clip(ph.reshape(batch, 2, -1), 0.0, 1.0) * mask[..., None]
+        s.line, s.c_phase = pos, ph
+        return pos, ph
+
+    def _step(self, scene: Scene, s: _State, series: np.ndarray) -> dict[str, np.ndarray]:
+        cfg, batch = self.cfg, len(s.root)
+        rows = np.arange(batch)
+        targets = series[rows, s.index]  # (B,2,3)
+        has = np.all(np.isfinite(targets), -1)
+        mask = has & control_near(s.root, np.where(has[..., None], targets, np.inf),
+                                  cfg.control_radius)
+        hands = self._hands(s.root, s.jpos, s.jrot)
+        safe = np.where(mask[..., None], targets, 0.0)
+
+        # T: past samples from the history, the present and future from the last prediction.
+        past = cfg.trajectory_offsets < 0
+        past_idx = s.hist_root.shape[1] + cfg.trajectory_offsets[past]
+        past_roots = s.hist_root[:, past_idx]
+        traj = np.concatenate([
+            np.concatenate([relative_root(s.root[:, None], past_roots),
+                            s.hist_action[:, past_idx]], -1), s.future], 1)  # (B,13,12)
+        fut_rel = s.future[..., :9]
+        fut_roots = s.root[:, None] @ make_transform(sixd_to_matrix(fut_rel[..., 3:]),
+                                                     fut_rel[..., :3])
+        sample_roots = np.concatenate([past_roots, fut_roots], 1)
+        goals = np.concatenate([relative_root(sample_roots, scene.goal),
+                                np.broadcast_to(np.eye(3)[SIT], (batch, len(traj[0]), 3))], -1)
+        groups = {"joint_positions": s.jpos, "joint_rotations": s.jrot,
+                  "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
+                  "interaction": interaction_features(scene.occupancy, scene.centres_world,
+                                                      s.root),
+                  "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
+        if self.method == "couch":
+            pos, ph = self._control(s, hands, targets, mask)
+            groups["control_positions"], groups["control_phases"] = pos, ph
+            hand_phase = ph[..., 0]
+        else:
+            rel = np.where(mask[..., None], to_root(safe, s.root), 0.0)
+            groups["contact_inputs"] = np.concatenate([rel.reshape(batch, 6), mask], -1)
+            hand_phase = mask.astype(np.float64)
+        x = self._norm(self.pose_stats, {g: groups[g] for g in self.groups_in})
+        with torch.no_grad():
+            pred, _ = self.pose_net(pose_inputs(x, "pose" if self.method == "couch"
+                                                else "baseline"))
+        pred = pred.cpu().numpy().astype(np.float64)
+        out, start = {}, 0
+        for g in self.groups_out:
+            w = self.widths[g]
+            out[g] = self.pose_stats.denormalize(g, pred[:, start:start + w])
+            start += w
+
+        # Advance: history, root, J, trajectory, phase.
+        s.hist_root = np.concatenate([s.hist_root[:, 1:], s.root[:, None]], 1)
+        s.hist_action = np.concatenate([s.hist_action[:, 1:], s.future[:, :1, 9:]], 1)
+        s.hist_hphase = np.concatenate([s.hist_hphase[:, 1:], hand_phase[:, None]], 1)
+        s.root = integrate_root(s.root, out["root_update"])
+        s.jpos = out["next_joint_positions"].reshape(batch, -1, 3)
+        s.jrot = out["next_joint_rotations"].reshape(batch, -1, 6)
+        s.jvel = out["next_joint_velocities"].reshape(batch, -1, 3)
+        fut = out["future_trajectory"].reshape(batch, -1, 12)
+        fut[..., 1] = 0.0  # roots live on the floor
+        fut[..., 3:9] = matrix_to_6d(sixd_to_matrix(fut[..., 3:9]))
+        act = np.clip(fut[..., 9:], 0.0, None)
+        fut[..., 9:] = act / np.maximum(act.sum(-1, keepdims=True), 1e-6)
+        s.future = fut
+        s.phase = np.clip(out["next_global_phase"][:, 0], 0.0, 1.0)
+        s.on = mask
+
+        # Series: the next contact set once this one was held (or timed out).
+        new_hands = self._hands(s.root, s.jpos, s.jrot)
+        close = np.linalg.norm(new_hands - safe, axis=-1) <= self.reach
+        all_close = mask.any(-1) & np.all(close | ~mask, -1)
+        s.held = np.where(all_close, s.held + 1, s.held)
+        s.since = np.where(mask.any(-1), s.since + 1, s.since)
+        done = (s.held >= self.hold * cfg.fps) | (s.since >= self.timeout * cfg.fps)
+        advance = done & (s.index < series.shape[1] - 1)
+        s.index = np.where(advance, s.index + 1, s.index)
+        s.held = np.where(advance, 0, s.held)
+        s.since = np.where(advance, 0, s.since)
+        s.on = s.on & ~advance[:, None]  # a new set starts from its straight line
+        return {"root": s.root, "jpos": s.jpos, "jrot": s.jrot, "hands": new_hands,
+                "targets": np.where(has[..., None], targets, np.nan), "on": mask,
+                "index": s.index, "phase": s.phase,
+                "contacts": np.clip(out["next_contacts"], 0.0, 1.0)}
+
+    def synthesize(self, scene: Scene, starts: np.ndarray, series: np.ndarray,
+                   seconds: float = 16.0, progress: bool = False) -> SynthesisResult:
+        """Run B characters for ``seconds``.
+
+        Args:
+            scene: the chair (:meth:`Scene.from_mesh`, built with ``self.cfg``).
+            starts: (B,3) start (x, z, heading) on the floor, world metres / radians (heading
+                turns +Z towards +X).
+            series: (B,S,2,3) or (S,2,3) contact sets in world metres, followed in order; a
+                NaN row is a "no contact" hand.
+        """
+        starts = np.atleast_2d(np.asarray(starts, np.float64))
+        series = np.asarray(series, np.float64)
+        if series.ndim == 3:
+            series = np.broadcast_to(series, (len(starts), *series.shape))
+        if starts.shape[1:] != (3,) or series.shape[2:] != (2, 3) or len(series) != len(starts):
+            raise ValueError(f"starts must be (B,3) and series (B,S,2,3); got {starts.shape} "
+                             f"and {series.shape}")
+        frames = round(seconds * self.cfg.fps)
+        if frames < 1:
+            raise ValueError(f"seconds must give at least one frame, got {seconds}")
+        state = self._initial_state(scene, starts, len(starts))
+        steps = []
+        for _ in tqdm(range(frames), desc="synthesis", unit="frame", disable=not progress):
+            steps.append({k: np.copy(v) for k, v in self._step(scene, state, series).items()})
+        stack = {k: np.stack([st[k] for st in steps], 1) for k in steps[0]}
+        b, t = stack["root"].shape[:2]
+        flat = [stack[k].reshape(b * t, *stack[k].shape[2:]) for k in ("root", "jpos", "jrot")]
+        go, bp, tr, joints = self.smpl(*flat)
+        return SynthesisResult(
+            method=self.method, fps=self.cfg.fps, scene=scene, root=stack["root"],
+            joints=joints.reshape(b, t, -1, 3), global_orient=go.reshape(b, t, 3),
+            body_pose=bp.reshape(b, t, 69), transl=tr.reshape(b, t, 3), betas=self.betas,
+            hands=stack["hands"], targets=stack["targets"], control_on=stack["on"],
+            series=np.array(series), series_index=stack["index"],
+            global_phase=stack["phase"], contacts=stack["contacts"])
+
+
+def _fk(rots: torch.Tensor, rest: torch.Tensor, parents: torch.Tensor) -> tuple[torch.Tensor,
+                                                                                  torch.Tensor]:
+    """Joint positions (N,24,3) (pelvis at its rest place) of local rotations (N,24,3,3)."""
+    from couch.body import rigid_transforms
+
+    return rigid_transforms(rots, rest.expand(len(rots), -1, -1).to(rots.dtype), parents)
+
+
+def chair_to_world(points: np.ndarray, scene: Scene) -> np.ndarray:
+    """(..., 3) chair-frame points -> world."""
+    return apply_transform(scene.world_from_chair, points)
+
+
+def world_to_chair(points: np.ndarray, scene: Scene) -> np.ndarray:
+    """(..., 3) world points -> chair frame."""
+    return apply_transform(invert_transform(scene.world_from_chair), points)
+

@@ -1,0 +1,196 @@
+"""The runtime controller, its exports and ``couch-synthesize`` on the session's ci-trained run
+(``ci_run`` in conftest.py: tiny networks, so these tests check the machinery, not the motion
+quality; ``couch-eval`` measures that)."""
+
+from __future__ import annotations
+
+import av
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from couch.body import load_body_model
+from couch.rotations import matrix_to_axis_angle
+from couch.schema import read_processed, validate
+from couch.synthesis import (
+    Scene,
+    Synthesizer,
+    sample_contacts,
+    save_npz,
+    to_processed,
+    yaw_transform,
+)
+from couch.synthesis.features import global_rotations, pose_features, root_transforms
+from couch.tools.sim.chairs import make_chair, random_chair_spec, save_mesh
+from couch.tools.synthesize import main
+
+
+@pytest.fixture(scope="module")
+def chair():
+    """An armchair in the chair frame, and its left armrest's top (chair frame = world)."""
+    c = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
+    return c.vertices, c.faces, np.asarray(c.landmarks.left_armrest)
+
+
+@pytest.fixture(scope="module")
+def synth(ci_run):
+    torch.set_num_threads(1)
+    return Synthesizer(ci_run.run_dir, "couch")
+
+
+@pytest.fixture(scope="module")
+def scene(synth, chair):
+    return Scene.from_mesh(chair[0], chair[1], synth.cfg, name="armchair")
+
+
+@pytest.fixture(scope="module")
+def result(synth, scene, chair):
+    left = chair[2]
+    series = np.array([[left, [np.nan] * 3]])
+    starts = np.array([[0.0, 2.5, np.pi], [1.0, 1.0, -2.0], [0.2, 0.9, np.pi]])
+    return synth.synthesize(scene, starts, series, seconds=3.0)
+
+
+def test_scene_goal_sits_on_the_seat(scene):
+    goal = scene.goal
+    assert abs(goal[1, 3]) < 1e-9  # roots live on the floor
+    assert np.hypot(goal[0, 3], goal[2, 3]) < 0.1  # the seat is centred on x = z = 0
+    assert goal[2, 2] > 0.99  # facing the chair's front (+Z)
+
+
+def test_batched_result_shapes_and_invariants(result, synth):
+    b, t = 3, 90
+    assert result.root.shape == (b, t, 4, 4) and result.joints.shape == (b, t, 24, 3)
+    assert result.body_pose.shape == (b, t, 69) and result.hands.shape == (b, t, 2, 3)
+    for name in ("joints", "global_orient", "body_pose", "transl", "hands", "global_phase"):
+        assert np.all(np.isfinite(getattr(result, name))), name
+    assert np.allclose(result.root[..., 1, 3], 0.0)
+    assert np.all((result.global_phase >= 0) & (result.global_phase <= 1))
+    # Control is on only near its contact (FeatureConfig.control_radius), never for "none".
+    on = result.control_on[..., 0]
+    d = result.targets[..., 0, :] - result.root[..., :3, 3]
+    assert np.all(np.hypot(d[..., 0], d[..., 2])[on] < synth.cfg.control_radius)
+    assert not result.control_on[..., 1].any()
+    assert not on[0, 0]  # starts 2.5 m away
+    assert on[2, 0]  # starts within reach: control from the first frame
+
+
+def test_smpl_parameters_reproduce_the_posed_body(result):
+    """The exported SMPL parameters posed by the real body model give the exported joints."""
+    model = load_body_model("couch-body")
+    with torch.no_grad():
+        out = model(betas=result.betas[None], global_orient=result.global_orient[0],
+                    body_pose=result.body_pose[0], transl=result.transl[0])
+    assert np.abs(out.joints.numpy() - result.joints[0]).max() < 1e-4
+
+
+def test_smpl_conversion_inverts_the_features(synth):
+    """Root-frame J of a known pose (the features' own maths) -> SMPL -> the same pose."""
+    rng = np.random.default_rng(0)
+    n = 4
+    go = rng.normal(0, 0.3, (n, 3)) + np.array([0, 1.0, 0])
+    bp = rng.normal(0, 0.3, (n, 69))
+    bp[:, 63:] = 0.0  # hand joints 22/23: the controller leaves them at rest
+    transl = rng.normal(0, 0.5, (n, 3))
+    model = load_body_model("couch-body")
+    with torch.no_grad():
+        joints = model(global_orient=go, body_pose=bp, transl=transl).joints.double().numpy()
+    root = root_transforms(joints)
+    jpos, jrot, _ = pose_features(joints, global_rotations(go, bp), root, 30.0)
+    go2, bp2, transl2, joints2 = synth.smpl(root, jpos, jrot)
+    assert np.abs(joints2 - joints).max() < 1e-5
+    assert np.allclose(transl2, transl, atol=1e-5)
+    # Same rotations (axis-angle may differ by 2π wraps: compare via the matrices' action).
+    assert np.allclose(matrix_to_axis_angle(_m(go2)), matrix_to_axis_angle(_m(go)), atol=1e-6)
+    assert np.allclose(_m(bp2.reshape(n, 23, 3)), _m(bp.reshape(n, 23, 3)), atol=1e-6)
+
+
+def _m(aa):
+    from couch.rotations import axis_angle_to_matrix
+
+    return axis_angle_to_matrix(np.asarray(aa, np.float64))
+
+
+def test_series_moves_to_the_next_contact_set(ci_run, scene, chair):
+    # reach 10 m: every active hand counts as "there", so each set ends after `hold` seconds.
+    syn = Synthesizer(ci_run.run_dir, "couch", hold=0.2, reach=10.0)
+    left, nan = chair[2], np.full(3, np.nan)
+    right = left * np.array([-1.0, 1.0, 1.0])
+    series = np.array([[left, nan], [nan, right]])
+    r = syn.synthesize(scene, np.array([[0.2, 0.9, np.pi]]), series, seconds=1.0)
+    idx = r.series_index[0]
+    assert idx[0] == 0 and idx[-1] == 1
+    assert np.all(np.diff(idx) >= 0)
+    first = np.flatnonzero(idx == 1)[0]
+    assert np.isnan(r.targets[0, first + 1, 0, 0]) and np.isfinite(r.targets[0, first + 1, 1, 0])
+
+
+def test_baseline_runs_in_the_same_harness(ci_run, scene, chair):
+    syn = Synthesizer(ci_run.run_dir, "baseline")
+    assert syn.control_net is None
+    r = syn.synthesize(scene, np.array([[0.2, 0.9, np.pi]]),
+                       np.array([[chair[2], [np.nan] * 3]]), seconds=1.0)
+    assert r.method == "baseline" and np.all(np.isfinite(r.joints))
+
+
+def test_exports(result, tmp_path):
+    session = to_processed(result, 1)
+    validate(session)
+    assert session.num_frames == result.num_frames
+    assert np.array_equal(session.contact_active, result.contacts[1] > 0.5)
+    path = save_npz(result, tmp_path / "s.npz")
+    with np.load(path, allow_pickle=False) as z:
+        assert z["body_pose"].shape == result.body_pose.shape
+        assert str(z["method"]) == "couch"
+
+
+def test_sampled_contacts_lie_on_the_chair(ci_run, scene):
+    c = sample_contacts(ci_run.run_dir, scene, 16, seed=1, max_distance=0.5)
+    assert c.shape == (16, 2, 3)
+    kept = np.isfinite(c).all(-1)
+    assert kept.any()
+    mesh = trimesh.Trimesh(scene.vertices, scene.faces, process=False)
+    _, dist, _ = trimesh.proximity.closest_point(mesh, c[kept])
+    assert dist.max() < 1e-6
+
+
+def test_cli_writes_motion_schema_and_preview(ci_run, chair, tmp_path, capsys):
+    mesh = save_mesh(tmp_path / "armchair.obj", chair[0], chair[1])
+    left = ",".join(f"{v:.3f}" for v in chair[2])
+    out = tmp_path / "out"
+    code = main([str(ci_run.run_dir), "--chair", str(mesh), "--contacts", f"{left};none",
+                 "--contacts", "none;none", "--seconds", "1", "--start", "0,1.2,180",
+                 "-o", str(out), "-q"])
+    assert code == 0, capsys.readouterr().err
+    s = read_processed(out / "couch_000.h5")
+    assert s.num_frames == 30 and s.object_name == "armchair"
+    assert (out / "couch_001.h5").is_file() and not (out / "couch_001.mp4").exists()
+    with av.open(str(out / "couch_000.mp4")) as c:
+        assert sum(1 for _ in c.decode(video=0)) == 15  # every 2nd frame
+    assert (out / "couch_000.png").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--contacts", "1,2;none"], "expected x,y,z"),
+    (["--contacts", "0,0,0"], "left;right"),
+    (["--start", "0,1"], "--start"),
+    (["--seconds", "0"], "--seconds"),
+])
+def test_cli_bad_arguments(ci_run, chair, tmp_path, capsys, args, message):
+    mesh = save_mesh(tmp_path / "c.obj", chair[0], chair[1])
+    code = main([str(ci_run.run_dir), "--chair", str(mesh), "-o", str(tmp_path / "o"),
+                 "-q", *args])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cli_missing_chair(ci_run, tmp_path, capsys):
+    assert main([str(ci_run.run_dir), "--chair", str(tmp_path / "no.obj"), "-o",
+                 str(tmp_path / "o"), "-q"]) == 2
+    assert "no.obj" in capsys.readouterr().err
+
+
+def test_yaw_transform_heading():
+    t = yaw_transform(1.0, 2.0, np.pi / 2)
+    assert np.allclose(t[:3, 2], [1, 0, 0]) and np.allclose(t[:3, 3], [1, 0, 2])
