@@ -70,7 +70,8 @@ class Scene:
 
     vertices (V,3) / faces (F,3) in the chair frame; world_from_chair (4,4); occupancy (512,)
     and centres_world (512,3) of the 8^3 interaction voxels; grid the fine occupancy for E;
-    goal (4,4) the sit goal root (seat centre on the floor, facing the chair's front).
+    goal (4,4) the sit goal root (seat centre on the floor, facing the chair's front);
+    seat_half_width (m) half the seat's width along the chair's x (where a sitter may shift to).
     """
 
     name: str
@@ -81,6 +82,7 @@ class Scene:
     centres_world: np.ndarray
     grid: OccupancyGrid
     goal: np.ndarray
+    seat_half_width: float = 0.0
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, cfg: FeatureConfig,
@@ -95,39 +97,64 @@ class Scene:
         occupancy, centres, _ = voxel_grid(v, f, cfg.interaction_resolution,
                                            cfg.interaction_subsamples)
         grid = OccupancyGrid.from_mesh(v, f, pose, cfg.occupancy_voxel)
+        goal, half = sit_goal(v, f)
         return cls(name, v, f, pose, occupancy, apply_transform(pose, centres), grid,
-                   pose @ sit_goal(v, f))
+                   pose @ goal, half)
+
+    def goals(self, series: np.ndarray) -> np.ndarray:
+        """(B,4,4) world sit goals for (B,S,2,3) world contact series: the seat goal shifted
+        along the seat towards the first set's contacts (a sofa's sitter sits by the armrest
+        they hold), keeping 25 cm from the seat's ends."""
+        first = world_to_chair(np.asarray(series, np.float64)[:, 0], self)  # (B,2,3)
+        finite = np.isfinite(first[..., 0])
+        count = finite.sum(-1)
+        goal_chair = invert_transform(self.world_from_chair) @ self.goal
+        want = np.where(count > 0, np.where(finite, first[..., 0], 0.0).sum(-1)
+                        / np.maximum(count, 1), goal_chair[0, 3])
+        room = max(self.seat_half_width - 0.25, 0.0)
+        shift = np.clip(want - goal_chair[0, 3], -room, room)
+        out = np.repeat(goal_chair[None], len(first), 0)
+        out[:, 0, 3] += shift
+        return self.world_from_chair @ out
 
 
-def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(4,4) chair-frame root pose of a sitter: the seat's centre (:func:`couch.augment.
-    segment_parts`) on the floor, facing +Z. Falls back to the origin if no seat is found."""
+def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
+    """Chair-frame sit goal: (4,4) root pose at the seat's centre (:func:`couch.augment.
+    segment_parts`) on the floor, facing +Z, and the seat's half width along x (m). Falls back
+    to the origin and 0 if no seat is found."""
     from couch.augment import segment_parts  # heavy (trimesh, open3d); only needed here
 
+    centre, half = np.zeros(3), 0.0
     try:
         parts = segment_parts(vertices, faces)
-        centre = parts.frames["seat"].centre if parts.has("seat") else np.zeros(3)
+        if parts.has("seat"):
+            seat = parts.frames["seat"]
+            centre = seat.centre
+            half = float(seat.half_extents[0] * abs(seat.u[0])
+                         + seat.half_extents[1] * abs(seat.v[0]))
     except ValueError:
-        centre = np.zeros(3)
-    return yaw_transform(centre[0], centre[2], 0.0)
+        pass
+    return yaw_transform(centre[0], centre[2], 0.0), half
 
 
 @dataclasses.dataclass
 class SynthesisResult:
     """B synthesised motions of T frames at ``fps`` (world frame, metres, radians).
 
-    root (B,T,4,4) world_from_root; joints (B,T,24,3) from the SMPL parameters (forward
-    kinematics of the bundled body's rest skeleton); global_orient (B,T,3), body_pose (B,T,69)
-    axis-angle, transl (B,T,3), betas (10,) (the mean shape); hands (B,T,2,3) the hand joints
-    22/23 the controller steered; targets (B,T,2,3) each frame's active contact per hand (NaN:
-    none); control_on (B,T,2) whether the hand's control was on; series (B,S,2,3) the contact
-    sets asked for, in order; series_index (B,T) which set was active; global_phase (B,T);
-    contacts (B,T,5) predicted contact labels (pelvis, hands, feet; 0..1).
+    goal (B,4,4) each character's sit goal root; root (B,T,4,4) world_from_root; joints
+    (B,T,24,3) from the SMPL parameters (forward kinematics of the bundled body's rest
+    skeleton); global_orient (B,T,3), body_pose (B,T,69) axis-angle, transl (B,T,3), betas
+    (10,) (the mean shape); hands (B,T,2,3) the hand joints 22/23 the controller steered;
+    targets (B,T,2,3) each frame's active contact per hand (NaN: none); control_on (B,T,2)
+    whether the hand's control was on; series (B,S,2,3) the contact sets asked for, in order;
+    series_index (B,T) which set was active; global_phase (B,T); contacts (B,T,5) predicted
+    contact labels (pelvis, hands, feet; 0..1).
     """
 
     method: str
     fps: float
     scene: Scene
+    goal: np.ndarray
     root: np.ndarray
     joints: np.ndarray
     global_orient: np.ndarray
@@ -152,6 +179,7 @@ class _State:
     """Per-character controller state, every array batch-first (B)."""
 
     root: np.ndarray  # (B,4,4)
+    goal: np.ndarray  # (B,4,4) sit goal root
     jpos: np.ndarray  # (B,22,3) root frame
     jrot: np.ndarray  # (B,22,6) root frame
     jvel: np.ndarray  # (B,22,3) m/s, root frame
@@ -185,6 +213,7 @@ class Synthesizer:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         self.method, self.device = method, torch.device(device)
+        self.run_dir = Path(run_dir)
         net = "pose" if method == "couch" else "baseline"
         self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which, device)
         self.cfg = feature_config_from_json(json.dumps(meta["feature_config"]))
@@ -244,14 +273,14 @@ class Synthesizer:
 
     # ------------------------------------------------------------------ the loop
 
-    def _initial_state(self, scene: Scene, starts: np.ndarray, batch: int) -> _State:
+    def _initial_state(self, goal: np.ndarray, starts: np.ndarray, batch: int) -> _State:
         cfg = self.cfg
         root = yaw_transform(starts[:, 0], starts[:, 1], starts[:, 2])
         h = int(-cfg.trajectory_offsets.min())
         fut = cfg.trajectory_offsets[cfg.future_samples]
         # The first second's trajectory walks straight at the goal at 1 m/s: the network's own
         # prediction takes over after one frame.
-        to_goal = to_root(scene.goal[:3, 3][None, None], root)[:, 0]  # (B,3)
+        to_goal = to_root(goal[:, None, :3, 3], root)[:, 0]  # (B,3)
         heading = np.arctan2(to_goal[:, 0], to_goal[:, 2])
         dist = np.minimum(np.hypot(to_goal[:, 0], to_goal[:, 2])[:, None], fut[None] / cfg.fps)
         future_root = root[:, None] @ yaw_transform(dist * np.sin(heading)[:, None],
@@ -261,7 +290,8 @@ class Synthesizer:
         future = np.concatenate([relative_root(root[:, None], future_root), walk], -1)
         idle = np.broadcast_to(np.eye(3)[0], (batch, h, 3)).copy()
         return _State(
-            root=root, jpos=np.broadcast_to(self.init_jpos, (batch, *self.init_jpos.shape)).copy(),
+            root=root, goal=goal,
+            jpos=np.broadcast_to(self.init_jpos, (batch, *self.init_jpos.shape)).copy(),
             jrot=np.broadcast_to(self.init_jrot, (batch, *self.init_jrot.shape)).copy(),
             jvel=np.zeros((batch, cfg.num_joints, 3)), future=future, phase=np.zeros(batch),
             hist_root=np.repeat(root[:, None], h, 1), hist_action=idle,
@@ -332,7 +362,7 @@ class Synthesizer:
         fut_roots = s.root[:, None] @ make_transform(sixd_to_matrix(fut_rel[..., 3:]),
                                                      fut_rel[..., :3])
         sample_roots = np.concatenate([past_roots, fut_roots], 1)
-        goals = np.concatenate([relative_root(sample_roots, scene.goal),
+        goals = np.concatenate([relative_root(sample_roots, s.goal[:, None]),
                                 np.broadcast_to(np.eye(3)[SIT], (batch, len(traj[0]), 3))], -1)
         groups = {"joint_positions": s.jpos, "joint_rotations": s.jrot,
                   "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
@@ -413,7 +443,8 @@ class Synthesizer:
         frames = round(seconds * self.cfg.fps)
         if frames < 1:
             raise ValueError(f"seconds must give at least one frame, got {seconds}")
-        state = self._initial_state(scene, starts, len(starts))
+        goal = scene.goals(series)
+        state = self._initial_state(goal, starts, len(starts))
         steps = []
         for _ in tqdm(range(frames), desc="synthesis", unit="frame", disable=not progress):
             steps.append({k: np.copy(v) for k, v in self._step(scene, state, series).items()})
@@ -422,7 +453,7 @@ class Synthesizer:
         flat = [stack[k].reshape(b * t, *stack[k].shape[2:]) for k in ("root", "jpos", "jrot")]
         go, bp, tr, joints = self.smpl(*flat)
         return SynthesisResult(
-            method=self.method, fps=self.cfg.fps, scene=scene, root=stack["root"],
+            method=self.method, fps=self.cfg.fps, scene=scene, goal=goal, root=stack["root"],
             joints=joints.reshape(b, t, -1, 3), global_orient=go.reshape(b, t, 3),
             body_pose=bp.reshape(b, t, 69), transl=tr.reshape(b, t, 3), betas=self.betas,
             hands=stack["hands"], targets=stack["targets"], control_on=stack["on"],

@@ -194,3 +194,15 @@ def test_cli_missing_chair(ci_run, tmp_path, capsys):
 def test_yaw_transform_heading():
     t = yaw_transform(1.0, 2.0, np.pi / 2)
     assert np.allclose(t[:3, 2], [1, 0, 0]) and np.allclose(t[:3, 3], [1, 0, 2])
+
+
+def test_sofa_goal_moves_towards_the_held_armrest(synth):
+    c = make_chair(random_chair_spec(np.random.default_rng(5), "sofa"))
+    sofa = Scene.from_mesh(c.vertices, c.faces, synth.cfg, name="sofa")
+    assert sofa.seat_half_width > 0.5
+    left = np.asarray(c.landmarks.left_armrest)
+    nan = np.full(3, np.nan)
+    goals = sofa.goals(np.array([[[left, nan]], [[nan, nan]], [[left, left * [-1, 1, 1]]]]))
+    assert goals[0, 0, 3] == pytest.approx(sofa.goal[0, 3] + sofa.seat_half_width - 0.25)
+    assert goals[1, 0, 3] == pytest.approx(sofa.goal[0, 3])  # no contact: the seat centre
+    assert abs(goals[2, 0, 3] - sofa.goal[0, 3]) < 0.05  # both armrests: the middle

@@ -394,3 +394,16 @@ def test_normalizer_round_trip_and_state_dict() -> None:
 
     with pytest.raises(ValueError):
         Normalizer.from_stats(np.zeros(3), np.ones(4))
+
+
+def test_posenet_inference_cache_follows_weight_updates() -> None:
+    net = _small_posenet().eval()
+    batch = _posenet_batch(net, 4)
+    with torch.no_grad():
+        cached, _ = net(batch)
+    torch.testing.assert_close(cached, net(batch)[0].detach(), rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        net.expert_weights[0].mul_(0.5)  # in place, as optimisers update
+        after, _ = net(batch)
+    assert not torch.allclose(after, cached)
+    torch.testing.assert_close(after, net(batch)[0].detach(), rtol=1e-5, atol=1e-5)

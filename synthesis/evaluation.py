@@ -1,0 +1,226 @@
+"""The COUCH evaluation protocol (paper Sec. 5) over any set of synthesis methods.
+
+Per chair (held out from training): ``trials`` characters start at random points 2-4 m from
+the seat, within ±120° of the chair's front, facing a random direction, and are asked for a
+random contact set (left hand only, right hand only, or both) drawn from the chair's contact
+candidates (armrest tops, seat edges: :func:`contact_candidates`); every method gets the same
+starts and contacts and runs for ``seconds`` (paper: 16 s). Metrics (:mod:`.metrics`):
+
+- ACE (cm) and AP@3/5/7/9 cm (%) of the SMPL hand joints 22/23 against their contacts;
+- sat (%): trials whose predicted pelvis contact is on at the end;
+- APD of approach and sit segments: root-frame joint positions over the second before and the
+  second after the sit onset (first predicted pelvis contact), over all trials;
+- foot sliding (mm/frame, CHOIS weighting) and penetration (coarse body vertices against the
+  chair's signed distance: mean per-frame max depth, cm, and % of frames deeper than 4 cm);
+- contact APD of ContactNet samples (L chairs x N samples), per run.
+
+:func:`ground_truth_row` gives the same APDs of captured/simulated sequences for comparison.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from couch.body import CONTACT_NAMES, JOINT_INDEX, load_body_model
+from couch.schema import ProcessedSession
+from couch.synthesis.controller import Scene, SynthesisResult, Synthesizer
+from couch.synthesis.features import root_transforms, to_root
+from couch.synthesis.metrics import (
+    AP_THRESHOLDS,
+    ace,
+    apd,
+    closest_hand_distances,
+    contact_apd,
+    contact_precision,
+    foot_sliding,
+    penetration,
+)
+from couch.synthesis.sampling import sample_contacts
+
+__all__ = ["EvalChair", "contact_candidates", "evaluate", "ground_truth_row", "segment_apd",
+           "trial_setup"]
+
+HAND_JOINTS = (JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"])
+
+
+@dataclasses.dataclass
+class EvalChair:
+    """A chair mesh in the chair frame (metres, +Y up, floor y = 0, facing +Z)."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+def contact_candidates(vertices: np.ndarray, faces: np.ndarray) -> dict[str, list[np.ndarray]]:
+    """Chair-frame hand contact candidates per hand, from the part segmentation
+    (:func:`couch.augment.segment_parts`): the armrest's top (centre and front) and the seat's
+    side edge on that hand's side (+X is the sitter's left). ``{"left": [...], "right": [...]}``.
+    """
+    from couch.augment import segment_parts
+
+    parts = segment_parts(vertices, faces)
+    out: dict[str, list[np.ndarray]] = {"left": [], "right": []}
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        arm = parts.frames.get(f"{side}_armrest")
+        if arm is not None:
+            out[side] += [arm.centre, arm.to_world(np.array([[0.0, 0.6, 0.0]]))[0]]
+        seat = parts.frames.get("seat")
+        if seat is not None:
+            edge = seat.centre.copy()
+            edge[0] += sign * (abs(seat.u[0]) * seat.half_extents[0] * 0.85
+                               + abs(seat.v[0]) * seat.half_extents[1] * 0.85)
+            out[side].append(edge)
+    return out
+
+
+def trial_setup(scene: Scene, candidates: Mapping[str, list[np.ndarray]], trials: int,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random starts (trials, 3) (x, z, heading) and contact sets (trials, 2, 3) in the world."""
+    goal = scene.goal
+    angle = rng.uniform(-2 * np.pi / 3, 2 * np.pi / 3, trials)  # around the chair's front
+    radius = rng.uniform(2.0, 4.0, trials)
+    front = scene.world_from_chair[:3, 2]
+    base = np.arctan2(front[0], front[2])
+    x = goal[0, 3] + radius * np.sin(base + angle)
+    z = goal[2, 3] + radius * np.cos(base + angle)
+    starts = np.stack([x, z, rng.uniform(-np.pi, np.pi, trials)], -1)
+    sets = np.full((trials, 2, 3), np.nan)
+    kinds = rng.integers(0, 3, trials)  # 0 left, 1 right, 2 both
+    for i, kind in enumerate(kinds):
+        for h, side in enumerate(("left", "right")):
+            if (kind == 2 or kind == h) and candidates[side]:
+                c = candidates[side][rng.integers(len(candidates[side]))]
+                sets[i, h] = (scene.world_from_chair @ np.append(c, 1.0))[:3]
+    return starts, sets
+
+
+def _sit_onsets(result: SynthesisResult) -> np.ndarray:
+    """(B,) first frame with predicted pelvis contact (-1: never sat)."""
+    sat = result.contacts[..., CONTACT_NAMES.index("pelvis")] > 0.5
+    return np.where(sat.any(1), sat.argmax(1), -1)
+
+
+def segment_apd(joints: Sequence[np.ndarray], onsets: Sequence[int], fps: float,
+                seconds: float = 1.0) -> tuple[float, float]:
+    """APD of approach (``seconds`` before each sit onset) and sit (``seconds`` from it)
+    segments: root-frame joint positions (:func:`couch.synthesis.features.root_transforms`)
+    flattened per segment. ``joints``: sequences of (T,24,3) world joints; ``onsets`` their sit
+    onset frames (-1: none). NaN where fewer than two sequences have the segment."""
+    n = round(seconds * fps)
+    approach, sit = [], []
+    for j, s in zip(joints, onsets, strict=True):
+        local = to_root(j[:, :22], root_transforms(j))
+        if s >= n:
+            approach.append(local[s - n:s].reshape(-1))
+        if 0 <= s and s + n <= len(j):
+            sit.append(local[s:s + n].reshape(-1))
+    return (apd(np.stack(approach)) if len(approach) > 1 else float("nan"),
+            apd(np.stack(sit)) if len(sit) > 1 else float("nan"))
+
+
+def _penetration(result: SynthesisResult, sdf, model) -> tuple[float, float]:
+    depth, over = [], []
+    for b in range(len(result.root)):
+        with torch.no_grad():
+            v = model(betas=result.betas[None], global_orient=result.global_orient[b],
+                      body_pose=result.body_pose[b], transl=result.transl[b]).vertices.numpy()
+        p = penetration(v, sdf, result.scene.world_from_chair)
+        depth.append(p["mean_depth_m"])
+        over.append(p["frames_over_pct"])
+    return float(np.mean(depth)), float(np.mean(over))
+
+
+def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair], *,
+             trials: int = 8, seconds: float = 16.0, seed: int = 0,
+             contact_samples: int = 0, progress: bool = True
+             ) -> tuple[dict[str, dict[str, float]], dict[str, np.ndarray]]:
+    """Run the protocol. Returns (table rows ``{method: {metric: value}}``, raw per-trial
+    closest hand distances ``{method: (chairs*trials, 2)}`` in m).
+
+    ``contact_samples`` > 0 also samples that many ContactNet contact sets per chair from each
+    method's run and reports their contact APD (cm).
+    """
+    from couch.augment import SignedDistanceGrid
+
+    coarse = load_body_model("couch-body-coarse")
+    rng = np.random.default_rng(seed)
+    dists: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    joints: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    onsets: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    extra: dict[str, dict[str, list[float]]] = {m: {"skate": [], "pen": [], "over": [],
+                                                    "sat": []} for m in synthesizers}
+    sampled: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    first = next(iter(synthesizers.values()))
+    for chair in tqdm(chairs, desc="chairs", disable=not progress):
+        scene = Scene.from_mesh(chair.vertices, chair.faces, first.cfg, name=chair.name)
+        starts, sets = trial_setup(scene, contact_candidates(chair.vertices, chair.faces),
+                                   trials, rng)
+        sdf = SignedDistanceGrid.from_mesh(chair.vertices, chair.faces)
+        for method, syn in synthesizers.items():
+            r = syn.synthesize(scene, starts, sets[:, None], seconds)
+            hands = r.joints[:, :, list(HAND_JOINTS)]
+            dists[method].append(closest_hand_distances(hands, sets))
+            joints[method] += list(r.joints)
+            onsets[method].append(_sit_onsets(r))
+            extra[method]["skate"] += [foot_sliding(j, r.fps) for j in r.joints]
+            d, o = _penetration(r, sdf, coarse)
+            extra[method]["pen"].append(d)
+            extra[method]["over"].append(o)
+            extra[method]["sat"] += list(r.contacts[:, -1, CONTACT_NAMES.index("pelvis")] > 0.5)
+            if contact_samples:
+                run = syn.run_dir
+                sampled[method].append(sample_contacts(run, scene, contact_samples, seed=seed))
+    rows: dict[str, dict[str, float]] = {}
+    raw: dict[str, np.ndarray] = {}
+    for method, syn in synthesizers.items():
+        d = np.concatenate(dists[method])
+        raw[method] = d
+        ap = contact_precision(d, AP_THRESHOLDS)
+        a_apd, s_apd = segment_apd(joints[method], list(np.concatenate(onsets[method])),
+                                   syn.cfg.fps)
+        row = {"ACE cm": 100 * ace(d)}
+        row.update({f"AP@{round(k * 100)} %": 100 * v for k, v in ap.items()})
+        row.update({"sat %": 100 * float(np.mean(extra[method]["sat"])),
+                    "APD approach": a_apd, "APD sit": s_apd,
+                    "skate mm/frame": 1000 * float(np.mean(extra[method]["skate"])),
+                    "pen. depth cm": 100 * float(np.mean(extra[method]["pen"])),
+                    "pen. >4 cm %": float(np.mean(extra[method]["over"]))})
+        if contact_samples:
+            row["contact APD cm"] = 100 * contact_apd(np.stack(sampled[method]))
+        rows[method] = row
+    return rows, raw
+
+
+def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
+                     ) -> dict[str, float]:
+    """The APDs of recorded/simulated sequences (resampled to ``fps``), with the same segment
+    definitions (sit onset = first pelvis contact), and the contact APD of their hand contacts
+    (chair frame, one group)."""
+    from couch.synthesis.features import canonical_chair, hand_targets, resample
+
+    joints, onsets, contacts = [], [], []
+    for s in sessions:
+        s = resample(canonical_chair(s), fps) if abs(s.fps - fps) > 1e-6 else canonical_chair(s)
+        j = np.asarray(s.joints, np.float64)
+        sat = np.asarray(s.contact_active)[:, CONTACT_NAMES.index("pelvis")]
+        joints.append(j)
+        onsets.append(int(sat.argmax()) if sat.any() else -1)
+        per_hand = []
+        for name in ("left_hand", "right_hand"):
+            i = CONTACT_NAMES.index(name)
+            tgt, mask = hand_targets(np.asarray(s.contact_active)[:, i],
+                                     np.asarray(s.contact_points)[:, i].astype(np.float64))
+            p = tgt[np.flatnonzero(mask)[0]] if mask.any() else np.full(3, np.nan)
+            inv = np.linalg.inv(np.asarray(s.object_pose, np.float64))
+            per_hand.append(inv[:3, :3] @ p + inv[:3, 3])
+        contacts.append(np.stack(per_hand))
+    a_apd, s_apd = segment_apd(joints, onsets, fps)
+    return {"APD approach": a_apd, "APD sit": s_apd,
+            "contact APD cm": 100 * contact_apd(np.stack(contacts)[None])}
+

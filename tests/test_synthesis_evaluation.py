@@ -1,0 +1,101 @@
+"""The evaluation protocol and ``couch-eval`` on the session's ci-trained run (machinery only:
+the numbers of a real run are in README's synthesis section)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from couch.synthesis import Scene, Synthesizer
+from couch.synthesis.data import find_sequences, load_sequence
+from couch.synthesis.evaluation import (
+    EvalChair,
+    contact_candidates,
+    evaluate,
+    ground_truth_row,
+    segment_apd,
+    trial_setup,
+)
+from couch.tools.evaluate import main, simulated_chairs
+from couch.tools.sim.chairs import make_chair, random_chair_spec
+
+
+@pytest.fixture(scope="module")
+def armchair():
+    c = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
+    return EvalChair("armchair", c.vertices, c.faces)
+
+
+def test_contact_candidates_lie_on_the_chair_on_their_side(armchair):
+    cands = contact_candidates(armchair.vertices, armchair.faces)
+    assert len(cands["left"]) == 3 and len(cands["right"]) == 3  # 2 on the armrest + seat edge
+    mesh = trimesh.Trimesh(armchair.vertices, armchair.faces, process=False)
+    for side, sign in (("left", 1), ("right", -1)):
+        pts = np.stack(cands[side])
+        assert np.all(sign * pts[:, 0] > 0.1)  # +X is the sitter's left
+        _, dist, _ = trimesh.proximity.closest_point(mesh, pts)
+        assert dist.max() < 0.01
+
+
+def test_trial_setup_draws_starts_around_the_front(ci_run, armchair):
+    syn = Synthesizer(ci_run.run_dir, "couch")
+    scene = Scene.from_mesh(armchair.vertices, armchair.faces, syn.cfg)
+    cands = contact_candidates(armchair.vertices, armchair.faces)
+    starts, sets = trial_setup(scene, cands, 50, np.random.default_rng(0))
+    r = np.hypot(starts[:, 0] - scene.goal[0, 3], starts[:, 1] - scene.goal[2, 3])
+    assert np.all((r >= 2.0) & (r <= 4.0))
+    assert np.all(np.arctan2(starts[:, 0], starts[:, 1]) <= 2 * np.pi / 3 + 0.05)
+    asked = np.isfinite(sets[..., 0])
+    assert asked.any(1).all() and asked.all(1).any() and (~asked).any()
+
+
+def test_segment_apd_is_zero_for_identical_motions_and_grows_with_difference():
+    rng = np.random.default_rng(0)
+    j = rng.normal(0, 0.3, (60, 24, 3))
+    j[:, 0, 1] = 0.9
+    a, s = segment_apd([j, j.copy()], [30, 30], fps=30.0)
+    assert a == pytest.approx(0.0) and s == pytest.approx(0.0)
+    k = j.copy()
+    k[:, 5:, 1] += 0.1  # a different pose (not a rigid move)
+    a2, _ = segment_apd([j, k], [30, 30], fps=30.0)
+    assert a2 > 0.1
+    assert np.isnan(segment_apd([j, j], [-1, -1], fps=30.0)[0])
+
+
+def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
+    synths = {m: Synthesizer(ci_run.run_dir, m) for m in ("couch", "baseline")}
+    rows, raw = evaluate(synths, [armchair], trials=3, seconds=1.5, seed=1, contact_samples=4,
+                         progress=False)
+    assert set(rows) == {"couch", "baseline"}
+    for method, row in rows.items():
+        assert row["ACE cm"] >= 0 and 0 <= row["AP@5 %"] <= 100
+        assert raw[method].shape == (3, 2)
+        assert np.isfinite(row["skate mm/frame"]) and row["pen. depth cm"] >= 0
+    gt = ground_truth_row([load_sequence(r) for r in find_sequences([motion_sim])])
+    assert gt["APD approach"] > 0 and gt["APD sit"] > 0
+
+
+def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
+    code = main([str(ci_run.run_dir), "-o", str(tmp_path), "--chairs", "1", "--trials", "2",
+                 "--seconds", "1", "--contact-samples", "0", "-q"])
+    assert code == 0, capsys.readouterr().err
+    table = (tmp_path / "eval.md").read_text()
+    assert "| couch |" in table and "| baseline |" in table
+    rows = json.loads((tmp_path / "eval.json").read_text())["rows"]
+    assert set(rows) == {"couch", "baseline"}
+
+
+def test_couch_eval_bad_input(ci_run, tmp_path, capsys):
+    assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--trials", "0"]) == 2
+    assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--chair-dir", str(tmp_path)]) == 2
+    assert "no .obj/.ply" in capsys.readouterr().err
+
+
+def test_simulated_chairs_are_new_and_varied():
+    chairs = simulated_chairs(3, seed=0)
+    assert [c.name.split("_")[0] for c in chairs] == ["armchair", "straight", "sofa"]
+    again = simulated_chairs(3, seed=0)
+    assert np.array_equal(chairs[0].vertices, again[0].vertices)

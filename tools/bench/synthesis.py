@@ -1,0 +1,68 @@
+"""Benchmark: synthesis frames per second of the runtime controller, one character and a batch.
+
+Runs :class:`couch.synthesis.Synthesizer` (COUCH: ControlNet + PoseNet; ``--method baseline``
+for NSM+Control) on an armchair with a left-armrest contact, the characters starting within
+the control radius so that ControlNet runs on every frame (the costlier case). Prints frames per
+second (characters x frames / wall time, features, networks and state update included; the
+SMPL conversion after the loop not) for a batch of 1 and of ``--batch``, and their ratio to real
+time (30 fps).
+
+Without ``--run`` it first trains a throwaway run (not timed): the ``paper`` preset's network
+sizes for one epoch on two simulated sequences, so the timing is that of the paper's networks
+(speed does not depend on how well they are trained).
+
+Run: ``python -m couch.tools.bench.synthesis [--run RUN] [--batch 64] [--seconds 4]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+
+import numpy as np
+import torch
+
+from couch.synthesis import Scene, Synthesizer, train
+from couch.tools.sim.chairs import make_chair, random_chair_spec
+from couch.tools.sim.session import simulate_motion_dataset
+
+
+def _throwaway_run(folder: str) -> str:
+    simulate_motion_dataset(f"{folder}/data", 2, seed=11, progress=False)
+    train([f"{folder}/data"], f"{folder}/run", net="all", preset="paper", epochs=1,
+          progress=False)
+    return f"{folder}/run"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--run", help="trained run (default: a 1-epoch paper-size throwaway run)")
+    ap.add_argument("--method", default="couch", choices=["couch", "baseline"])
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--seconds", type=float, default=4.0, help="synthesised seconds per run")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        run = args.run or _throwaway_run(tmp)
+        syn = Synthesizer(run, args.method)
+        chair = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
+        scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
+        left = np.asarray(chair.landmarks.left_armrest)
+        series = np.array([[left, [np.nan] * 3]])
+        print(f"run {run} ({syn.method}); {args.seconds:g} s per run, {args.threads} thread(s)")
+        syn.synthesize(scene, np.array([[0.2, 1.0, np.pi]]), series, 0.5)  # warm-up
+        for batch in (1, args.batch):
+            starts = np.tile([0.2, 1.0, np.pi], (batch, 1))
+            t0 = time.perf_counter()
+            r = syn.synthesize(scene, starts, series, args.seconds)
+            dt = time.perf_counter() - t0
+            assert r.control_on[..., 0].mean() > 0.5 or args.method == "baseline"
+            fps = batch * r.num_frames / dt
+            print(f"batch {batch:3d}: {fps:8.0f} frames/s = {fps / syn.cfg.fps:6.1f}x real time "
+                  f"({dt:.2f} s for {r.num_frames} frames)")
+
+
+if __name__ == "__main__":
+    main()
