@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from couch.body import JOINT_INDEX, PARENTS, load_body_model, standing_pose
+from couch.body import CONTACT_NAMES, JOINT_INDEX, PARENTS, load_body_model, standing_pose
 from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.rotations import matrix_to_6d, matrix_to_axis_angle, sixd_to_matrix
 from couch.synthesis.data import feature_config_from_json
@@ -33,6 +33,7 @@ from couch.synthesis.features import (
     SIT,
     FeatureConfig,
     OccupancyGrid,
+    advance_phase,
     control_line,
     control_near,
     ego_features,
@@ -341,16 +342,10 @@ class Synthesizer:
         s.line, s.c_phase = pos, ph
         return pos, ph
 
-    def _step(self, scene: Scene, s: _State, series: np.ndarray) -> dict[str, np.ndarray]:
+    def _state_features(self, scene: Scene, s: _State) -> dict[str, np.ndarray]:
+        """PoseNet's J, T, G, I, E and global phase of the current state, as training builds
+        them (:func:`couch.synthesis.features.sequence_features`), each (B, ...)."""
         cfg, batch = self.cfg, len(s.root)
-        rows = np.arange(batch)
-        targets = series[rows, s.index]  # (B,2,3)
-        has = np.all(np.isfinite(targets), -1)
-        mask = has & control_near(s.root, np.where(has[..., None], targets, np.inf),
-                                  cfg.control_radius)
-        hands = self._hands(s.root, s.jpos, s.jrot)
-        safe = np.where(mask[..., None], targets, 0.0)
-
         # T: past samples from the history, the present and future from the last prediction.
         past = cfg.trajectory_offsets < 0
         past_idx = s.hist_root.shape[1] + cfg.trajectory_offsets[past]
@@ -364,11 +359,23 @@ class Synthesizer:
         sample_roots = np.concatenate([past_roots, fut_roots], 1)
         goals = np.concatenate([relative_root(sample_roots, s.goal[:, None]),
                                 np.broadcast_to(np.eye(3)[SIT], (batch, len(traj[0]), 3))], -1)
-        groups = {"joint_positions": s.jpos, "joint_rotations": s.jrot,
-                  "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
-                  "interaction": interaction_features(scene.occupancy, scene.centres_world,
-                                                      s.root),
-                  "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
+        return {"joint_positions": s.jpos, "joint_rotations": s.jrot,
+                "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
+                "interaction": interaction_features(scene.occupancy, scene.centres_world,
+                                                    s.root),
+                "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
+
+    def _step(self, scene: Scene, s: _State, series: np.ndarray) -> dict[str, np.ndarray]:
+        cfg, batch = self.cfg, len(s.root)
+        rows = np.arange(batch)
+        targets = series[rows, s.index]  # (B,2,3)
+        has = np.all(np.isfinite(targets), -1)
+        mask = has & control_near(s.root, np.where(has[..., None], targets, np.inf),
+                                  cfg.control_radius)
+        hands = self._hands(s.root, s.jpos, s.jrot)
+        safe = np.where(mask[..., None], targets, 0.0)
+
+        groups = self._state_features(scene, s)
         if self.method == "couch":
             pos, ph = self._control(s, hands, targets, mask)
             groups["control_positions"], groups["control_phases"] = pos, ph
@@ -402,7 +409,9 @@ class Synthesizer:
         act = np.clip(fut[..., 9:], 0.0, None)
         fut[..., 9:] = act / np.maximum(act.sum(-1, keepdims=True), 1e-6)
         s.future = fut
-        s.phase = np.clip(out["next_global_phase"][:, 0], 0.0, 1.0)
+        seated = (out["next_contacts"][:, CONTACT_NAMES.index("pelvis")] > 0.5) | (
+            fut[:, 0, 9 + SIT] > 0.5)
+        s.phase = advance_phase(s.phase, out["global_phase_update"][:, 0], seated)
         s.on = mask
 
         # Series: the next contact set once this one was held (or timed out).

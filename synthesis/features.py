@@ -651,6 +651,18 @@ def control_signal(hand_positions: np.ndarray, phases: np.ndarray, target: np.nd
     return pos, phases[idx].transpose(0, 2, 1)
 
 
+def phase_update(phase: np.ndarray, next_phase: np.ndarray) -> np.ndarray:
+    """Change from ``phase`` to ``next_phase`` (both in [0, 1]) wrapped to [-0.5, 0.5)."""
+    return np.mod(np.asarray(next_phase) - np.asarray(phase) + 0.5, 1.0) - 0.5
+
+
+def advance_phase(phase: np.ndarray, update: np.ndarray, seated: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`phase_update` at runtime: ``phase + update`` wrapped into [0, 1) while
+    walking, held at 1 once ``seated`` (bool, same shape) reaches the top of the sit ramp."""
+    nxt = np.asarray(phase) + np.asarray(update)
+    return np.where(seated & (nxt >= 1.0), 1.0, np.mod(nxt, 1.0))
+
+
 def root_update(root: np.ndarray, next_root: np.ndarray) -> np.ndarray:
     """(..., 3): (dx, dz) of ``next_root`` in the frame of ``root`` (m) and the yaw change dyaw
     (radians, positive turns forward +z towards +x) — what the runtime integrates."""
@@ -758,7 +770,10 @@ class SequenceFeatures:
             "next_joint_velocities": self.joint_velocities[nxt],
             "future_trajectory": self.trajectory[nxt][:, fut],
             "future_goals": self.goals[nxt][:, fut],
-            "next_global_phase": self.global_phase[nxt],
+            # NSM-style: the phase's change, wrapped to [-0.5, 0.5), not its next value: a
+            # regression onto a cyclic value that wraps 1 -> 0 every step cycle averages the two
+            # ends (~0.5) near the wrap, and the runtime then cannot tell walking from sitting.
+            "global_phase_update": phase_update(self.global_phase, self.global_phase[nxt]),
             "future_joint_positions": self.future_joint_positions,
             "goal_relative_root": self.goal_relative_root,
             "next_contacts": self.next_contacts,
@@ -795,7 +810,7 @@ def layout(cfg: FeatureConfig | None = None) -> dict[str, dict[str, dict[str, in
                        "global_phase": 1},
             "targets": {"next_joint_positions": j * 3, "next_joint_rotations": j * 6,
                         "next_joint_velocities": j * 3, "future_trajectory": kf * 12,
-                        "future_goals": kf * 12, "next_global_phase": 1,
+                        "future_goals": kf * 12, "global_phase_update": 1,
                         "future_joint_positions": j * 3, "goal_relative_root": 9,
                         "next_contacts": 5, "root_update": 3},
         },

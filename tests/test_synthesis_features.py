@@ -352,3 +352,18 @@ def test_feature_stats_round_trip(tmp_path, features):
 
 def test_left_ankle_is_smpl_joint_7():
     assert JOINT_INDEX["left_ankle"] == 7 and CFG.hand_joints == (22, 23)
+
+
+def test_phase_update_wraps_and_advance_phase_inverts_it():
+    from couch.synthesis.features import advance_phase, phase_update
+
+    phase = np.array([0.2, 0.95, 0.9, 1.0, 0.4])
+    nxt = np.array([0.25, 0.02, 1.0, 1.0, 0.0])
+    up = phase_update(phase, nxt)
+    assert np.allclose(up, [0.05, 0.07, 0.1, 0.0, -0.4])
+    assert np.all((up >= -0.5) & (up < 0.5))
+    walking = np.array([False, False, False, False, False])
+    seated = np.array([False, False, True, True, False])
+    assert np.allclose(advance_phase(phase, up, walking), [0.25, 0.02, 0.0, 0.0, 0.0])
+    # seated at the top of the sit ramp: held at 1 instead of wrapping to a new step cycle
+    assert np.allclose(advance_phase(phase, up, seated), [0.25, 0.02, 1.0, 1.0, 0.0])
