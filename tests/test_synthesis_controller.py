@@ -206,3 +206,29 @@ def test_sofa_goal_moves_towards_the_held_armrest(synth):
     assert goals[0, 0, 3] == pytest.approx(sofa.goal[0, 3] + sofa.seat_half_width - 0.25)
     assert goals[1, 0, 3] == pytest.approx(sofa.goal[0, 3])  # no contact: the seat centre
     assert abs(goals[2, 0, 3] - sofa.goal[0, 3]) < 0.05  # both armrests: the middle
+
+
+def test_runtime_features_match_training_features(synth, motion_sim):
+    """The controller's J, T, G, I, E for a recorded state equal sequence_features' rows."""
+    from couch.synthesis.controller import _State
+    from couch.synthesis.data import find_sequences, load_sequence
+    from couch.synthesis.features import canonical_chair, goal_frames, sequence_features
+
+    s = canonical_chair(load_sequence(find_sequences([motion_sim])[0]))
+    f = sequence_features(s, synth.cfg)
+    groups = f.as_groups(drop_last=False)
+    scene = Scene.from_mesh(s.object_vertices, s.object_faces, synth.cfg, s.object_pose)
+    goal_frame, _ = goal_frames(f.action_labels == 2, f.action_labels)
+    h = 30
+    for t in (5, f.num_frames // 2, f.num_frames - 40):
+        idx = np.clip(np.arange(t - h, t), 0, None)
+        state = _State(root=f.root[t][None], goal=f.root[goal_frame[t]][None],
+                       jpos=f.joint_positions[t][None], jrot=f.joint_rotations[t][None],
+                       jvel=f.joint_velocities[t][None], future=f.trajectory[t][6:][None],
+                       phase=f.global_phase[t][None], hist_root=f.root[idx][None],
+                       hist_action=f.actions[idx][None], hist_hphase=np.zeros((1, h, 2)),
+                       line=None, c_phase=None, on=None, lstm=None, index=None, since=None,
+                       held=None)
+        for name, value in synth._state_features(scene, state).items():
+            np.testing.assert_allclose(np.reshape(value, -1), groups[name][t], atol=2e-5,
+                                       err_msg=f"{name} at frame {t}")
