@@ -657,10 +657,9 @@ def phase_update(phase: np.ndarray, next_phase: np.ndarray) -> np.ndarray:
 
 
 def advance_phase(phase: np.ndarray, update: np.ndarray, seated: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`phase_update` at runtime: ``phase + update`` wrapped into [0, 1) while
-    walking, held at 1 once ``seated`` (bool, same shape) reaches the top of the sit ramp."""
-    nxt = np.asarray(phase) + np.asarray(update)
-    return np.where(seated & (nxt >= 1.0), 1.0, np.mod(nxt, 1.0))
+    """Inverse of :func:`phase_update` at runtime: ``phase + update`` wrapped into [0, 1), and 1
+    while ``seated`` (bool, same shape; :func:`global_phase` is 1 throughout a pelvis contact)."""
+    return np.where(seated, 1.0, np.mod(np.asarray(phase) + np.asarray(update), 1.0))
 
 
 def root_update(root: np.ndarray, next_root: np.ndarray) -> np.ndarray:

@@ -365,5 +365,6 @@ def test_phase_update_wraps_and_advance_phase_inverts_it():
     walking = np.array([False, False, False, False, False])
     seated = np.array([False, False, True, True, False])
     assert np.allclose(advance_phase(phase, up, walking), [0.25, 0.02, 0.0, 0.0, 0.0])
-    # seated at the top of the sit ramp: held at 1 instead of wrapping to a new step cycle
+    # seated: 1, as throughout a pelvis contact in the data, instead of a new step cycle
     assert np.allclose(advance_phase(phase, up, seated), [0.25, 0.02, 1.0, 1.0, 0.0])
+    assert np.allclose(advance_phase(phase, -up, ~walking), 1.0)
