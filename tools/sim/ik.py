@@ -57,16 +57,13 @@ def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
 
 
 def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
-                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Middle-joint position of a two-bone chain reaching ``target`` from ``root``.
 
     Args:
         root, target, pole: (T,3); the middle joint bends towards ``pole`` (a direction).
     Returns:
-        middle (T,3), the unit directions of the upper and lower bones (T,3) each, and the
-        unit hinge axis (T,3) of the chain's plane, ``root→target × bend direction``: it is
-        perpendicular to both bones, so (unlike ``pole``, which can line up with a bone) it
-        fixes their twist without ambiguity; see :func:`limb_rotations`.
+        middle (T,3), and the unit directions of the upper and lower bones (T,3) each.
         Targets out of reach are clamped to 99.9% of full extension along the same line.
     """
     to_target = target - root
@@ -77,28 +74,7 @@ def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_uppe
     bend = normalize(pole - (pole * e).sum(-1, keepdims=True) * e)
     middle = root + len_upper * (cos_a * e + np.sqrt(1 - cos_a**2) * bend)
     end = root + e * d
-    hinge = normalize(np.cross(e, bend))
-    return middle, normalize(middle - root), normalize(end - middle), hinge
-
-
-def limb_rotations(rest_upper: np.ndarray, rest_lower: np.ndarray, rest_pole: np.ndarray,
-                   d_upper: np.ndarray, d_lower: np.ndarray, hinge: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Global rotations (T,3,3) of a two-bone limb's bones from :func:`two_bone_ik`'s output.
-
-    Each bone's rest direction goes onto its solved direction, and the rest hinge axis (rest
-    bone × ``rest_pole``, the direction the middle joint bends towards in the rest pose) onto
-    the solved ``hinge``. The hinge is perpendicular to both bones whatever the pose, so the
-    twist about each bone is continuous from frame to frame. (Aligning the pole itself, made
-    perpendicular to the bone, flips the bone 180° about its axis whenever the pole passes
-    the bone's direction: a seated thigh points along a forward pole, an arm reaching down and
-    back can point along its back-and-down pole.)
-    """
-    out = []
-    for rest, d in ((rest_upper, d_upper), (rest_lower, d_lower)):
-        rest_hinge = normalize(np.cross(rest, rest_pole))
-        out.append(align(rest, np.cross(rest_hinge, rest), d, np.cross(hinge, d)))
-    return out[0], out[1]
+    return middle, normalize(middle - root), normalize(end - middle)
 
 
 class Skeleton:
@@ -150,8 +126,8 @@ def local_from_global(global_rot: dict[int, np.ndarray], num_frames: int) -> np.
     return local
 
 
-def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.ndarray,
-                   max_angle: float = np.pi) -> tuple[np.ndarray, np.ndarray]:
+def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Move the child's twist about ``axis`` (the bone between them, rest frame) into the parent.
 
     The child's global rotation and the child joint's position are unchanged (the parent turns
@@ -164,11 +140,5 @@ def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.n
     twist = np.concatenate([q[..., :1], proj], axis=-1)
     norm = np.linalg.norm(twist, axis=-1, keepdims=True)
     twist = np.where(norm > 1e-9, twist / np.maximum(norm, 1e-12), [1.0, 0.0, 0.0, 0.0])
-    # at most ``max_angle`` of it (the parent's twist range); the rest stays in the child
-    angle = 2 * np.arctan2((twist[..., 1:] @ axis), twist[..., 0])
-    angle = (angle + np.pi) % (2 * np.pi) - np.pi
-    angle = np.clip(angle, -max_angle, max_angle)
-    twist = np.concatenate([np.cos(angle / 2)[..., None], np.sin(angle / 2)[..., None] * axis],
-                           axis=-1)
     t = quat_to_matrix(twist)
     return parent_local @ t, np.swapaxes(t, -1, -2) @ child_local
