@@ -25,7 +25,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from couch.body import CONTACT_NAMES, JOINT_INDEX, PARENTS, load_body_model, standing_pose
+from couch.body import (
+    CONTACT_NAMES,
+    JOINT_INDEX,
+    PARENTS,
+    load_body_model,
+    rigid_transforms,
+    standing_pose,
+)
 from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.rotations import matrix_to_6d, matrix_to_axis_angle, sixd_to_matrix
 from couch.synthesis.data import feature_config_from_json
@@ -56,13 +63,9 @@ def yaw_transform(x: float | np.ndarray, z: float | np.ndarray,
                   heading: float | np.ndarray) -> np.ndarray:
     """(..., 4, 4) root-like poses on the floor at (x, 0, z) whose forward (+Z) axis is turned
     by ``heading`` radians from world +Z towards +X."""
-    h = np.asarray(heading, np.float64)
-    c, s = np.cos(h), np.sin(h)
-    zero, one = np.zeros_like(c), np.ones_like(c)
-    rot = np.stack([np.stack([c, zero, s], -1), np.stack([zero, one, zero], -1),
-                    np.stack([-s, zero, c], -1)], -2)
-    return make_transform(rot, np.stack(np.broadcast_arrays(
-        np.asarray(x, np.float64), zero, np.asarray(z, np.float64)), -1))
+    update = np.stack(np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(z, np.float64),
+                                          np.asarray(heading, np.float64)), -1)
+    return integrate_root(np.eye(4), update)
 
 
 @dataclasses.dataclass(eq=False)
@@ -106,7 +109,8 @@ class Scene:
         """(B,4,4) world sit goals for (B,S,2,3) world contact series: the seat goal shifted
         along the seat towards the first set's contacts (a sofa's sitter sits by the armrest
         they hold), keeping 25 cm from the seat's ends."""
-        first = world_to_chair(np.asarray(series, np.float64)[:, 0], self)  # (B,2,3)
+        first = apply_transform(invert_transform(self.world_from_chair),
+                                np.asarray(series, np.float64)[:, 0])  # (B,2,3) chair frame
         finite = np.isfinite(first[..., 0])
         count = finite.sum(-1)
         goal_chair = invert_transform(self.world_from_chair) @ self.goal
@@ -269,7 +273,8 @@ class Synthesizer:
         transl = pelvis - self.rest[0]
         rots = np.concatenate([world[:, :1], local, np.broadcast_to(np.eye(3), (n, 2, 3, 3))],
                               axis=1)
-        fk, _ = _fk(torch.as_tensor(rots), torch.as_tensor(self.rest), self.parents)
+        fk, _ = rigid_transforms(torch.as_tensor(rots),
+                                 torch.as_tensor(self.rest).expand(n, -1, -1), self.parents)
         return global_orient, body.reshape(n, 69), transl, fk.numpy() + transl[:, None]
 
     # ------------------------------------------------------------------ the loop
@@ -468,22 +473,3 @@ class Synthesizer:
             hands=stack["hands"], targets=stack["targets"], control_on=stack["on"],
             series=np.array(series), series_index=stack["index"],
             global_phase=stack["phase"], contacts=stack["contacts"])
-
-
-def _fk(rots: torch.Tensor, rest: torch.Tensor, parents: torch.Tensor) -> tuple[torch.Tensor,
-                                                                                  torch.Tensor]:
-    """Joint positions (N,24,3) (pelvis at its rest place) of local rotations (N,24,3,3)."""
-    from couch.body import rigid_transforms
-
-    return rigid_transforms(rots, rest.expand(len(rots), -1, -1).to(rots.dtype), parents)
-
-
-def chair_to_world(points: np.ndarray, scene: Scene) -> np.ndarray:
-    """(..., 3) chair-frame points -> world."""
-    return apply_transform(scene.world_from_chair, points)
-
-
-def world_to_chair(points: np.ndarray, scene: Scene) -> np.ndarray:
-    """(..., 3) world points -> chair frame."""
-    return apply_transform(invert_transform(scene.world_from_chair), points)
-

@@ -27,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from couch.body import CONTACT_NAMES, JOINT_INDEX, load_body_model
+from couch.geometry import apply_transform, invert_transform
 from couch.schema import ProcessedSession
 from couch.synthesis.controller import Scene, SynthesisResult, Synthesizer
 from couch.synthesis.features import root_transforms, to_root
@@ -206,7 +207,9 @@ def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
 
     joints, onsets, contacts = [], [], []
     for s in sessions:
-        s = resample(canonical_chair(s), fps) if abs(s.fps - fps) > 1e-6 else canonical_chair(s)
+        s = canonical_chair(s)
+        if abs(s.fps - fps) > 1e-6:
+            s = resample(s, fps)
         j = np.asarray(s.joints, np.float64)
         sat = np.asarray(s.contact_active)[:, CONTACT_NAMES.index("pelvis")]
         joints.append(j)
@@ -216,10 +219,9 @@ def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
             i = CONTACT_NAMES.index(name)
             tgt, mask = hand_targets(np.asarray(s.contact_active)[:, i],
                                      np.asarray(s.contact_points)[:, i].astype(np.float64))
-            p = tgt[np.flatnonzero(mask)[0]] if mask.any() else np.full(3, np.nan)
-            inv = np.linalg.inv(np.asarray(s.object_pose, np.float64))
-            per_hand.append(inv[:3, :3] @ p + inv[:3, 3])
-        contacts.append(np.stack(per_hand))
+            per_hand.append(tgt[np.flatnonzero(mask)[0]] if mask.any() else np.full(3, np.nan))
+        chair_from_world = invert_transform(np.asarray(s.object_pose, np.float64))
+        contacts.append(apply_transform(chair_from_world, np.stack(per_hand)))
     a_apd, s_apd = segment_apd(joints, onsets, fps)
     return {"APD approach": a_apd, "APD sit": s_apd,
             "contact APD cm": 100 * contact_apd(np.stack(contacts)[None])}

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from couch.body import load_body_model
+from couch.geometry import apply_transform
 from couch.schema import SchemaError
 from couch.synthesis import (
     METHODS,
@@ -86,9 +87,8 @@ def render_previews(result: SynthesisResult, out: Path, count: int, *, width: in
             vertices.append(o.vertices.numpy())
         contacts = result.series[b].reshape(-1, 3)
         chair = result.scene
-        chair_world = chair.world_from_chair[:3, :3] @ chair.vertices.T
         files = preview(np.concatenate(vertices), model.faces,
-                        (chair_world + chair.world_from_chair[:3, 3:]).T, chair.faces,
+                        apply_transform(chair.world_from_chair, chair.vertices), chair.faces,
                         out / f"{result.method}_{b:03d}", contacts=contacts,
                         hands=result.hands[b], fps=result.fps, width=width, height=height,
                         video_stride=2, progress=progress)
