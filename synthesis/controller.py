@@ -210,11 +210,15 @@ class Synthesizer:
             "baseline" its ``baseline`` net; ``which`` "best" or "last" checkpoints.
         hold: seconds a contact set is held (all its hands within ``reach`` m) before the next
             set of a series starts; ``timeout``: seconds after which it starts anyway.
+        blend_radius: bidirectional control (NSM, which COUCH's goal-relative root output is
+            for): within this many metres of the sit goal the next root is blended from the
+            ego-centric update towards the network's goal-relative prediction of it, with weight
+            (sit action) x (1 - distance / radius); 0 turns it off.
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
-                 timeout: float = 5.0) -> None:
+                 timeout: float = 5.0, blend_radius: float = 1.0) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         self.method, self.device = method, torch.device(device)
@@ -229,6 +233,7 @@ class Synthesizer:
             self.control_net, self.control_stats, _ = load_trained(run_dir, "control", which,
                                                                   device)
         self.hold, self.reach, self.timeout = hold, reach, timeout
+        self.blend_radius = blend_radius
         self._body_setup()
 
     # ------------------------------------------------------------------ body helpers
@@ -370,6 +375,29 @@ class Synthesizer:
                                                     s.root),
                 "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
 
+    def _next_root(self, scene: Scene, s: _State, out: dict[str, np.ndarray]) -> np.ndarray:
+        """(B,4,4) next world roots: the ego-centric root update, pulled near the goal towards
+        the goal-relative prediction of the same root. The ego-centric update integrates its
+        small errors over the approach; the goal-relative one is trained on where the data's
+        roots were relative to their goal, so close to it, it pins the sitter to the seat the
+        way the data sat."""
+        ego = integrate_root(s.root, out["root_update"])
+        if self.blend_radius <= 0 or "goal_relative_root" not in out:
+            return ego
+        rel = out["goal_relative_root"]
+        inverse = s.goal @ make_transform(sixd_to_matrix(rel[:, 3:9]), rel[:, :3])
+        dist = np.hypot(*(s.root[:, [0, 2], 3] - s.goal[:, [0, 2], 3]).T)
+        # Gated by the sit action as ROAM's l-NSM does: while walking and turning in front of
+        # the chair the goal-relative prediction pulls towards where the data stood, not sat.
+        sit = np.clip(s.future[:, 0, 9 + SIT], 0.0, 1.0)
+        w = sit * np.clip(1.0 - dist / self.blend_radius, 0.0, 1.0)
+        yaw_ego = np.arctan2(ego[:, 0, 2], ego[:, 2, 2])
+        yaw_inv = np.arctan2(inverse[:, 0, 2], inverse[:, 2, 2])
+        turn = np.angle(np.exp(1j * (yaw_inv - yaw_ego)))
+        x = (1 - w) * ego[:, 0, 3] + w * inverse[:, 0, 3]
+        z = (1 - w) * ego[:, 2, 3] + w * inverse[:, 2, 3]
+        return yaw_transform(x, z, yaw_ego + w * turn)
+
     def _step(self, scene: Scene, s: _State, series: np.ndarray) -> dict[str, np.ndarray]:
         cfg, batch = self.cfg, len(s.root)
         rows = np.arange(batch)
@@ -404,7 +432,7 @@ class Synthesizer:
         s.hist_root = np.concatenate([s.hist_root[:, 1:], s.root[:, None]], 1)
         s.hist_action = np.concatenate([s.hist_action[:, 1:], s.future[:, :1, 9:]], 1)
         s.hist_hphase = np.concatenate([s.hist_hphase[:, 1:], hand_phase[:, None]], 1)
-        s.root = integrate_root(s.root, out["root_update"])
+        s.root = self._next_root(scene, s, out)
         s.jpos = out["next_joint_positions"].reshape(batch, -1, 3)
         s.jrot = out["next_joint_rotations"].reshape(batch, -1, 6)
         s.jvel = out["next_joint_velocities"].reshape(batch, -1, 3)

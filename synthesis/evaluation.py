@@ -1,10 +1,11 @@
 """The COUCH evaluation protocol (paper Sec. 5) over any set of synthesis methods.
 
 Per chair (held out from training): ``trials`` characters start at random points 2-4 m from
-the seat, within ±120° of the chair's front, facing a random direction, and are asked for a
-random contact set (left hand only, right hand only, or both) drawn from the chair's contact
-candidates (armrest tops, seat edges: :func:`contact_candidates`); every method gets the same
-starts and contacts and runs for ``seconds`` (paper: 16 s). Metrics (:mod:`.metrics`):
+the seat, within ±120° of the chair's front, facing the chair ±45° (as the data's approaches
+start), and are asked for a random contact set (left hand only, right hand only, or both)
+drawn from the chair's contact candidates (armrest tops, seat edges:
+:func:`contact_candidates`); every method gets the same starts and contacts and runs for
+``seconds`` (paper: 16 s). Metrics (:mod:`.metrics`):
 
 - ACE (cm) and AP@3/5/7/9 cm (%) of the SMPL hand joints 22/23 against their contacts;
 - sat (%): trials whose predicted pelvis contact is on at the end;
@@ -90,7 +91,10 @@ def trial_setup(scene: Scene, candidates: Mapping[str, list[np.ndarray]], trials
     base = np.arctan2(front[0], front[2])
     x = goal[0, 3] + radius * np.sin(base + angle)
     z = goal[2, 3] + radius * np.cos(base + angle)
-    starts = np.stack([x, z, rng.uniform(-np.pi, np.pi, trials)], -1)
+    # Facing the chair give or take 45 degrees, as the captured (and simulated) approaches
+    # start: turning on the spot from facing away is not in the data.
+    towards = np.arctan2(goal[0, 3] - x, goal[2, 3] - z)
+    starts = np.stack([x, z, towards + rng.uniform(-np.pi / 4, np.pi / 4, trials)], -1)
     sets = np.full((trials, 2, 3), np.nan)
     kinds = rng.integers(0, 3, trials)  # 0 left, 1 right, 2 both
     for i, kind in enumerate(kinds):

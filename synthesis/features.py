@@ -698,7 +698,11 @@ class SequenceFeatures:
         control_phases (T,2,7): the control signal C⁺ of frame t (:func:`control_signal`).
     Targets of the transition t -> t+1 (row t; the last row repeats the last frame):
         future_joint_positions (T,22,3): joints of t+1 in the root frame 1 s after t+1;
-        goal_relative_root (T,9): root of t+1 in the chair frame (position, 6D direction);
+        goal_relative_root (T,9): root of t+1 in the frame of frame t's goal root (position,
+            6D direction): NSM's inverse (goal-centric) trajectory, which the runtime blends
+            with the ego-centric update near the goal. The paper words it "relative to the
+            chair"; the goal is the seated root on that chair, and being relative to it keeps
+            the target well defined on chairs whose canonical front is ambiguous (stools);
         next_contacts (T,5) contact_active of t+1; root_update (T,3) (dx, dz, dyaw) from the
         root of t to the root of t+1. The remaining targets (next J, future T and G samples,
         next global phase, next C⁺) are the inputs of t+1, built by :meth:`as_groups`.
@@ -900,7 +904,7 @@ def sequence_features(session: ProcessedSession, config: FeatureConfig | None = 
     ahead = np.minimum(nxt + _frames(1.0, fps), n - 1)
     future_joints = to_root(joints[nxt, :cfg.num_joints], root[ahead])
     chair_from_world = invert_transform(object_pose)
-    goal_rel = relative_root(np.broadcast_to(object_pose, root.shape), root[nxt])
+    goal_rel = relative_root(root[goal_frame], root[nxt])
     update = root_update(root, root[nxt])
     chair_centre = centres_object.mean(0)
     contacts_chair = np.where(mask[..., None],

@@ -232,3 +232,31 @@ def test_runtime_features_match_training_features(synth, motion_sim):
         for name, value in synth._state_features(scene, state).items():
             np.testing.assert_allclose(np.reshape(value, -1), groups[name][t], atol=2e-5,
                                        err_msg=f"{name} at frame {t}")
+
+
+def test_bidirectional_blend_pulls_a_sitter_onto_the_goal(synth, scene):
+    """Near the goal and sitting, the next root is the goal-relative prediction; far away or
+    walking, the ego-centric update; halfway, halfway (yaw the short way round)."""
+    from couch.synthesis.controller import _State
+    from couch.synthesis.features import SIT
+
+    goal = yaw_transform(0.0, 0.0, 0.0)[None].repeat(4, 0)
+    root = yaw_transform(np.array([0.0, 3.0, 0.0, 0.5]), 0.0, 3.0)  # two near, one far, one mid
+    future = np.zeros((4, 7, 12))
+    future[:, 0, 9 + SIT] = [1.0, 1.0, 0.0, 1.0]  # sitting, sitting, walking, sitting
+    state = _State(root=root, goal=goal, jpos=None, jrot=None, jvel=None, future=future,
+                   phase=None, hist_root=None, hist_action=None, hist_hphase=None, line=None,
+                   c_phase=None, on=None, lstm=None, index=None, since=None, held=None)
+    update = np.tile([0.0, 0.1, 0.0], (4, 1))  # 10 cm forward, no turn
+    rel = np.tile([0.2, 0.0, -0.1, 1, 0, 0, 0, 1, 0], (4, 1))  # (0.2, -0.1) from the goal
+    out = {"root_update": update, "goal_relative_root": rel}
+    nxt = synth._next_root(scene, state, out)
+    ego = root @ yaw_transform(0.0, 0.1, 0.0)
+    np.testing.assert_allclose(nxt[0], yaw_transform(0.2, -0.1, 0.0), atol=1e-9)
+    np.testing.assert_allclose(nxt[1:3], ego[1:3], atol=1e-9)  # far; walking
+    w = 1.0 - 0.5 / synth.blend_radius
+    heading = np.arctan2(nxt[3, 0, 2], nxt[3, 2, 2])
+    ego_heading = np.arctan2(ego[3, 0, 2], ego[3, 2, 2])
+    assert heading == pytest.approx(ego_heading + w * np.angle(np.exp(-1j * ego_heading)))
+    np.testing.assert_allclose(nxt[3, [0, 2], 3], (1 - w) * ego[3, [0, 2], 3] + w * np.array(
+        [0.2, -0.1]), atol=1e-9)

@@ -48,6 +48,9 @@ def test_trial_setup_draws_starts_around_the_front(ci_run, armchair):
     r = np.hypot(starts[:, 0] - scene.goal[0, 3], starts[:, 1] - scene.goal[2, 3])
     assert np.all((r >= 2.0) & (r <= 4.0))
     assert np.all(np.arctan2(starts[:, 0], starts[:, 1]) <= 2 * np.pi / 3 + 0.05)
+    towards = np.arctan2(scene.goal[0, 3] - starts[:, 0], scene.goal[2, 3] - starts[:, 1])
+    off = np.angle(np.exp(1j * (starts[:, 2] - towards)))
+    assert np.all(np.abs(off) <= np.pi / 4) and np.ptp(off) > np.pi / 4  # facing it, varied
     asked = np.isfinite(sets[..., 0])
     assert asked.any(1).all() and asked.all(1).any() and (~asked).any()
 

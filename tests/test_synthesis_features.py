@@ -177,6 +177,13 @@ def test_trajectory_and_goals(session, features):
     np.testing.assert_array_equal(goals[before, k, 9:], np.broadcast_to([0, 0, 1], (len(before),
                                                                                     3)))
     np.testing.assert_allclose(goals[onset, k, :3], 0.0, atol=1e-5)
+    # the goal-relative root of t+1: the sit onset root itself at onset - 1, and for every frame
+    # before it, the next root seen from the onset root
+    rel = features.goal_relative_root.astype(np.float64)
+    np.testing.assert_allclose(rel[onset - 1], [0, 0, 0, 1, 0, 0, 0, 1, 0], atol=1e-5)
+    seen = apply_transform(invert_transform(features.root[onset]),
+                           features.root[before[:-1] + 1, :3, 3])
+    np.testing.assert_allclose(rel[before[:-1], :3], seen, atol=1e-5)
 
 
 def test_hand_phases_and_control(session, features):
