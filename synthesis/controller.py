@@ -55,6 +55,10 @@ from couch.synthesis.train import load_trained, pose_inputs
 
 __all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"]
 
+#: Sideways distance (m) from the hips to a hand resting on the chair beside them (the
+#: simulated and captured sitters' seat-edge and armrest contacts lie 22-31 cm out).
+HAND_REACH_X = 0.25
+
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
 
@@ -107,14 +111,16 @@ class Scene:
 
     def goals(self, series: np.ndarray) -> np.ndarray:
         """(B,4,4) world sit goals for (B,S,2,3) world contact series: the seat goal shifted
-        along the seat towards the first set's contacts (a sofa's sitter sits by the armrest
-        they hold), keeping 25 cm from the seat's ends."""
+        along the seat so that the first set's contacts are where the sitter's hands rest,
+        ``HAND_REACH_X`` to either side of the hips (a sofa's sitter sits by the armrest they
+        hold), keeping 25 cm from the seat's ends."""
         first = apply_transform(invert_transform(self.world_from_chair),
                                 np.asarray(series, np.float64)[:, 0])  # (B,2,3) chair frame
         finite = np.isfinite(first[..., 0])
         count = finite.sum(-1)
         goal_chair = invert_transform(self.world_from_chair) @ self.goal
-        want = np.where(count > 0, np.where(finite, first[..., 0], 0.0).sum(-1)
+        hips = first[..., 0] - np.array([HAND_REACH_X, -HAND_REACH_X])  # left hand is +x
+        want = np.where(count > 0, np.where(finite, hips, 0.0).sum(-1)
                         / np.maximum(count, 1), goal_chair[0, 3])
         room = max(self.seat_half_width - 0.25, 0.0)
         shift = np.clip(want - goal_chair[0, 3], -room, room)

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from couch.body import CONTACT_NAMES, JOINT_INDEX, load_body_model
 from couch.geometry import apply_transform, invert_transform
 from couch.schema import ProcessedSession
-from couch.synthesis.controller import Scene, SynthesisResult, Synthesizer
+from couch.synthesis.controller import HAND_REACH_X, Scene, SynthesisResult, Synthesizer
 from couch.synthesis.features import root_transforms, to_root
 from couch.synthesis.metrics import (
     AP_THRESHOLDS,
@@ -62,8 +62,11 @@ class EvalChair:
 def contact_candidates(vertices: np.ndarray, faces: np.ndarray) -> dict[str, list[np.ndarray]]:
     """Chair-frame hand contact candidates per hand, from the part segmentation
     (:func:`couch.augment.segment_parts`): the armrest's top (centre and front) and the seat's
-    side edge on that hand's side (+X is the sitter's left). ``{"left": [...], "right": [...]}``.
-    """
+    front corner on that hand's side (+X is the sitter's left), 5 cm in from the front edge and
+    at most ``HAND_REACH_X`` out from the centre: where the data's hands go (the paper samples
+    its test contacts from the dataset; the simulated sitters touch the seat at its front
+    corners, beside the thighs, and the armrests anywhere from their middle forwards).
+    ``{"left": [...], "right": [...]}``."""
     from couch.augment import segment_parts
 
     parts = segment_parts(vertices, faces)
@@ -74,10 +77,12 @@ def contact_candidates(vertices: np.ndarray, faces: np.ndarray) -> dict[str, lis
             out[side] += [arm.centre, arm.to_world(np.array([[0.0, 0.6, 0.0]]))[0]]
         seat = parts.frames.get("seat")
         if seat is not None:
-            edge = seat.centre.copy()
-            edge[0] += sign * (abs(seat.u[0]) * seat.half_extents[0] * 0.85
-                               + abs(seat.v[0]) * seat.half_extents[1] * 0.85)
-            out[side].append(edge)
+            half_x = abs(seat.u[0]) * seat.half_extents[0] + abs(seat.v[0]) * seat.half_extents[1]
+            half_z = abs(seat.u[2]) * seat.half_extents[0] + abs(seat.v[2]) * seat.half_extents[1]
+            corner = seat.centre.copy()
+            corner[0] += sign * min(0.85 * half_x, HAND_REACH_X)
+            corner[2] += max(half_z - 0.05, 0.0)
+            out[side].append(corner)
     return out
 
 
