@@ -102,3 +102,28 @@ def test_simulated_chairs_are_new_and_varied():
     assert [c.name.split("_")[0] for c in chairs] == ["armchair", "straight", "sofa"]
     again = simulated_chairs(3, seed=0)
     assert np.array_equal(chairs[0].vertices, again[0].vertices)
+
+
+def test_hand_surface_points_are_on_the_asked_hands(ci_run, armchair):
+    """ACE's hand points: a vertex of the asked hand (a few cm from its SMPL hand joint),
+    NaN for a hand with no contact."""
+    from couch.augment import SignedDistanceGrid
+    from couch.body import JOINT_INDEX, load_body_model
+    from couch.synthesis.evaluation import _body_metrics
+
+    syn = Synthesizer(ci_run.run_dir, "couch")
+    scene = Scene.from_mesh(armchair.vertices, armchair.faces, syn.cfg)
+    cands = contact_candidates(armchair.vertices, armchair.faces)
+    sets = np.array([[cands["left"][0], [np.nan] * 3], [cands["left"][0], cands["right"][0]]])
+    r = syn.synthesize(scene, np.array([[0.0, 2.0, np.pi], [0.5, 2.0, np.pi]]), sets[:, None],
+                       seconds=0.3)
+    sdf = SignedDistanceGrid.from_mesh(armchair.vertices, armchair.faces)
+    _, _, palms = _body_metrics(r, sets, sdf, load_body_model("couch-body-coarse"))
+    assert np.isnan(palms[0, :, 1]).all() and np.isfinite(palms[0, :, 0]).all()
+    assert np.isfinite(palms[1]).all()
+    joints = r.joints[:, :, [JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"]]]
+    gap = np.linalg.norm(palms - joints, axis=-1)
+    assert np.nanmax(gap) < 0.15 and np.nanmin(gap) > 0.0
+    # the chosen vertex is the asked hand's closest one: nearer the contact than the joint is
+    to_contact = np.linalg.norm(palms[1] - sets[1], axis=-1)
+    assert np.all(to_contact <= np.linalg.norm(joints[1] - sets[1], axis=-1) + 0.02)
