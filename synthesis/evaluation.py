@@ -3,7 +3,7 @@
 Per chair (held out from training): ``trials`` characters start at random points 2-4 m from
 the seat, within ±120° of the chair's front, facing the chair ±45° (as the data's approaches
 start), and are asked for a random contact set (left hand only, right hand only, or both)
-drawn from the chair's contact candidates (armrest tops, seat edges:
+drawn from the chair's contact candidates (armrest tops, the seat's front corners:
 :func:`contact_candidates`); every method gets the same starts and contacts and runs for
 ``seconds`` (paper: 16 s). Metrics (:mod:`.metrics`):
 
