@@ -48,6 +48,7 @@ from couch.synthesis.features import (
     interaction_features,
     relative_root,
     root_transforms,
+    root_update,
     to_root,
     voxel_grid,
 )
@@ -381,7 +382,7 @@ class Synthesizer:
                                                     s.root),
                 "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
 
-    def _next_root(self, scene: Scene, s: _State, out: dict[str, np.ndarray]) -> np.ndarray:
+    def _next_root(self, s: _State, out: dict[str, np.ndarray]) -> np.ndarray:
         """(B,4,4) next world roots: the ego-centric root update, pulled near the goal towards
         the goal-relative prediction of the same root. The ego-centric update integrates its
         small errors over the approach; the goal-relative one is trained on where the data's
@@ -397,12 +398,8 @@ class Synthesizer:
         # the chair the goal-relative prediction pulls towards where the data stood, not sat.
         sit = np.clip(s.future[:, 0, 9 + SIT], 0.0, 1.0)
         w = sit * np.clip(1.0 - dist / self.blend_radius, 0.0, 1.0)
-        yaw_ego = np.arctan2(ego[:, 0, 2], ego[:, 2, 2])
-        yaw_inv = np.arctan2(inverse[:, 0, 2], inverse[:, 2, 2])
-        turn = np.angle(np.exp(1j * (yaw_inv - yaw_ego)))
-        x = (1 - w) * ego[:, 0, 3] + w * inverse[:, 0, 3]
-        z = (1 - w) * ego[:, 2, 3] + w * inverse[:, 2, 3]
-        return yaw_transform(x, z, yaw_ego + w * turn)
+        # The fraction w of the step from ego to inverse: positions linearly, yaw the short way.
+        return integrate_root(ego, w[:, None] * root_update(ego, inverse))
 
     def _step(self, scene: Scene, s: _State, series: np.ndarray) -> dict[str, np.ndarray]:
         cfg, batch = self.cfg, len(s.root)
@@ -438,7 +435,7 @@ class Synthesizer:
         s.hist_root = np.concatenate([s.hist_root[:, 1:], s.root[:, None]], 1)
         s.hist_action = np.concatenate([s.hist_action[:, 1:], s.future[:, :1, 9:]], 1)
         s.hist_hphase = np.concatenate([s.hist_hphase[:, 1:], hand_phase[:, None]], 1)
-        s.root = self._next_root(scene, s, out)
+        s.root = self._next_root(s, out)
         s.jpos = out["next_joint_positions"].reshape(batch, -1, 3)
         s.jrot = out["next_joint_rotations"].reshape(batch, -1, 6)
         s.jvel = out["next_joint_velocities"].reshape(batch, -1, 3)

@@ -234,7 +234,7 @@ def test_runtime_features_match_training_features(synth, motion_sim):
                                        err_msg=f"{name} at frame {t}")
 
 
-def test_bidirectional_blend_pulls_a_sitter_onto_the_goal(synth, scene):
+def test_bidirectional_blend_pulls_a_sitter_onto_the_goal(synth):
     """Near the goal and sitting, the next root is the goal-relative prediction; far away or
     walking, the ego-centric update; halfway, halfway (yaw the short way round)."""
     from couch.synthesis.controller import _State
@@ -250,7 +250,7 @@ def test_bidirectional_blend_pulls_a_sitter_onto_the_goal(synth, scene):
     update = np.tile([0.0, 0.1, 0.0], (4, 1))  # 10 cm forward, no turn
     rel = np.tile([0.2, 0.0, -0.1, 1, 0, 0, 0, 1, 0], (4, 1))  # (0.2, -0.1) from the goal
     out = {"root_update": update, "goal_relative_root": rel}
-    nxt = synth._next_root(scene, state, out)
+    nxt = synth._next_root(state, out)
     ego = root @ yaw_transform(0.0, 0.1, 0.0)
     np.testing.assert_allclose(nxt[0], yaw_transform(0.2, -0.1, 0.0), atol=1e-9)
     np.testing.assert_allclose(nxt[1:3], ego[1:3], atol=1e-9)  # far; walking
