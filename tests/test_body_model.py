@@ -105,6 +105,11 @@ def test_lbs_matches_independent_reference(name):
     assert np.allclose(g[:, :3, 3], ref_j)
     assert np.allclose(g[1, :3, :3], Rotation.from_rotvec(pose[0]).as_matrix()
                        @ Rotation.from_rotvec(pose[1]).as_matrix())
+    # the skeleton alone (no skinning) is the same forward kinematics
+    joints, transforms = model.skeleton(betas=betas[None], global_orient=pose[None, 0],
+                                        body_pose=pose[None, 1:], transl=transl[None])
+    assert np.abs(joints[0].numpy() - ref_j).max() < 1e-9
+    assert np.abs(transforms[0].numpy() - g).max() < 1e-12
 
 
 def test_float32_matches_float64_and_matrices_match_axis_angle(body_model):

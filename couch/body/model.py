@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from couch.body.lbs import lbs, vertices_to_joints
+from couch.body.lbs import lbs, rigid_transforms, vertices_to_joints
 from couch.body.skeleton import JOINT_NAMES, NUM_BODY_JOINTS, NUM_JOINTS, contact_vertex_sets
 from couch.rotations import axis_angle_to_matrix
 from couch.safe_pickle import safe_load_pickle
@@ -162,6 +162,34 @@ class BodyModel(torch.nn.Module):
             body_pose: (B,69) / (B,23,3) axis-angle or (B,23,3,3) matrices, SMPL joint order.
             transl: (B,3) world translation, metres, added to every vertex and joint.
         """
+        batch, rot = self._batch_rotations(betas, global_orient, body_pose, transl)
+        vertices, joints, transforms = lbs(
+            self._betas(betas, batch), rot, self.v_template, self.shapedirs, self.posedirs,
+            self.J_regressor, self.parents, self.weights)
+        if transl is not None:
+            t = self._tensor(transl).reshape(batch, 1, 3)
+            vertices = vertices + t
+            joints, transforms = self._translated(joints, transforms, t)
+        return BodyOutput(vertices=vertices, joints=joints, joint_transforms=transforms)
+
+    def skeleton(self, betas: Any = None, global_orient: Any = None, body_pose: Any = None,
+                 transl: Any = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward`'s ``joints`` (B,24,3) and ``joint_transforms`` (B,24,4,4) without
+        skinning the mesh: forward kinematics of the shaped rest joints (pose correctives move
+        vertices, never joints), for callers that need only the skeleton over long motions."""
+        batch, rot = self._batch_rotations(betas, global_orient, body_pose, transl)
+        rest = self.rest_joints(self._betas(betas, batch))
+        joints, transforms = rigid_transforms(rot, rest, self.parents)
+        transforms = transforms.clone()
+        transforms[..., :3, 3] = joints
+        if transl is not None:
+            joints, transforms = self._translated(joints, transforms,
+                                                  self._tensor(transl).reshape(batch, 1, 3))
+        return joints, transforms
+
+    def _batch_rotations(self, betas: Any, global_orient: Any, body_pose: Any, transl: Any
+                         ) -> tuple[int, torch.Tensor]:
+        """The batch size and the (B,24,3,3) local rotations of :meth:`forward`'s arguments."""
         given = [x for x in (transl, global_orient, body_pose) if x is not None]
         if given:
             batch = len(given[0])
@@ -169,16 +197,14 @@ class BodyModel(torch.nn.Module):
             batch = len(betas) if betas is not None and np.ndim(betas) == 2 else 1
         rot = torch.cat([self._rotations(global_orient, 1, batch, "global_orient"),
                          self._rotations(body_pose, NUM_BODY_JOINTS, batch, "body_pose")], dim=1)
-        vertices, joints, transforms = lbs(
-            self._betas(betas, batch), rot, self.v_template, self.shapedirs, self.posedirs,
-            self.J_regressor, self.parents, self.weights)
-        if transl is not None:
-            t = self._tensor(transl).reshape(batch, 1, 3)
-            vertices = vertices + t
-            joints = joints + t
-            transforms = transforms.clone()
-            transforms[..., :3, 3] += t
-        return BodyOutput(vertices=vertices, joints=joints, joint_transforms=transforms)
+        return batch, rot
+
+    @staticmethod
+    def _translated(joints: torch.Tensor, transforms: torch.Tensor, t: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        transforms = transforms.clone()
+        transforms[..., :3, 3] += t
+        return joints + t, transforms
 
 
 def _read_arrays(path: Path) -> dict[str, Any]:

@@ -270,10 +270,11 @@ def body_track_from_model(model: BodyModel, time: Any, global_orient: Any, body_
     with torch.no_grad():
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
-            out = model(betas=betas_row, global_orient=np.asarray(global_orient)[s:e],
-                        body_pose=np.asarray(body_pose)[s:e], transl=np.asarray(transl)[s:e])
-            rots.append(out.joint_transforms[..., :3, :3].double().cpu().numpy())
-            joints.append(out.joints.double().cpu().numpy())
+            jts, transforms = model.skeleton(
+                betas=betas_row, global_orient=np.asarray(global_orient)[s:e],
+                body_pose=np.asarray(body_pose)[s:e], transl=np.asarray(transl)[s:e])
+            rots.append(transforms[..., :3, :3].double().cpu().numpy())
+            joints.append(jts.double().cpu().numpy())
         rest = model(betas=betas_row)
     rest_joints = rest.joints[0].double().cpu().numpy()
     floor = float(rest.vertices[0, :, 1].min())

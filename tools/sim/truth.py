@@ -113,8 +113,8 @@ def ground_truth(session: str, motion: Motion, times: np.ndarray, chair: ChairPl
                              rest_pelvis)
     betas = torch.as_tensor(motion.betas[None], dtype=model.dtype)
     with torch.no_grad():
-        joints = model(betas=betas, global_orient=params["global_orient"],
-                       body_pose=params["body_pose"], transl=params["transl"]).joints.numpy()
+        joints = model.skeleton(betas=betas, global_orient=params["global_orient"],
+                                body_pose=params["body_pose"], transl=params["transl"])[0].numpy()
     active, points = measure_contacts(contact_model or model, motion.betas, params,
                                       chair.world_vertices, chair.faces)
     pose = chair.world_from_scan
