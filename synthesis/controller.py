@@ -41,6 +41,7 @@ from couch.synthesis.features import (
     FeatureConfig,
     OccupancyGrid,
     advance_phase,
+    control_in_root,
     control_line,
     control_near,
     ego_features,
@@ -414,7 +415,8 @@ class Synthesizer:
         groups = self._state_features(scene, s)
         if self.method == "couch":
             pos, ph = self._control(s, hands, targets, mask)
-            groups["control_positions"], groups["control_phases"] = pos, ph
+            groups["control_root_positions"] = control_in_root(pos, to_root(safe, s.root), mask)
+            groups["control_phases"] = ph
             hand_phase = ph[..., 0]
         else:
             rel = np.where(mask[..., None], to_root(safe, s.root), 0.0)

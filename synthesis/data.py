@@ -71,8 +71,8 @@ __all__ = [
 ]
 
 #: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
-CACHE_FORMAT = 4  # 2: chairs in the canonical chair frame; 3: global_phase_update;
-# 4: goal_relative_root relative to the goal root
+CACHE_FORMAT = 5  # 2: chairs in the canonical chair frame; 3: global_phase_update;
+# 4: goal_relative_root relative to the goal root; 5: control_root_positions
 #: Groups that hold the same value on every row of a sequence; stored once per sequence.
 PER_SEQUENCE_GROUPS: tuple[str, ...] = ("contact_condition",)
 #: File names a folder search always treats as sequences (other ``.h5`` files need the schema's

@@ -651,6 +651,19 @@ def control_signal(hand_positions: np.ndarray, phases: np.ndarray, target: np.nd
     return pos, phases[idx].transpose(0, 2, 1)
 
 
+def control_in_root(positions: np.ndarray, target_root: np.ndarray, mask: np.ndarray
+                    ) -> np.ndarray:
+    """PoseNet's control input: C⁺ positions (..., 2, K, 3), relative to each hand's target and
+    rotated into the root frame (:func:`control_signal`), moved back to the root's origin by the
+    targets' root-frame positions ``target_root`` (..., 2, 3): where the hands will be, in the
+    frame the pose is predicted in. Zeros where ``mask`` (..., 2) is False.
+
+    Relative to the contact alone, C⁺ says how far the hand will be from a contact PoseNet is
+    never shown; a PoseNet trained on it ignored it (moving C⁺ 10 cm moved its next wrist 1 mm).
+    """
+    return np.where(mask[..., None, None], positions + target_root[..., None, :], 0.0)
+
+
 def phase_update(phase: np.ndarray, next_phase: np.ndarray) -> np.ndarray:
     """Change from ``phase`` to ``next_phase`` (both in [0, 1]) wrapped to [-0.5, 0.5)."""
     return np.mod(np.asarray(next_phase) - np.asarray(phase) + 0.5, 1.0) - 0.5
@@ -695,7 +708,8 @@ class SequenceFeatures:
         ego (T,1408); global_phase (T,); hand_phases (T,2,13) local phases at the trajectory
         samples; hand_targets (T,2,3) world contact targets (NaN where none) and hand_mask (T,2);
         control_line (T,2,7,3) ControlNet input h̃; control_positions (T,2,7,3) and
-        control_phases (T,2,7): the control signal C⁺ of frame t (:func:`control_signal`).
+        control_phases (T,2,7): the control signal C⁺ of frame t (:func:`control_signal`);
+        control_root_positions (T,2,7,3): C⁺ as PoseNet reads it (:func:`control_in_root`).
     Targets of the transition t -> t+1 (row t; the last row repeats the last frame):
         future_joint_positions (T,22,3): joints of t+1 in the root frame 1 s after t+1;
         goal_relative_root (T,9): root of t+1 in the frame of frame t's goal root (position,
@@ -731,6 +745,7 @@ class SequenceFeatures:
     control_line: np.ndarray
     control_positions: np.ndarray
     control_phases: np.ndarray
+    control_root_positions: np.ndarray
     future_joint_positions: np.ndarray
     goal_relative_root: np.ndarray
     next_contacts: np.ndarray
@@ -757,7 +772,7 @@ class SequenceFeatures:
             "next_control_positions": self.control_positions[nxt],
             "next_control_phases": self.control_phases[nxt],
             # PoseNet inputs
-            "control_positions": self.control_positions,
+            "control_root_positions": self.control_root_positions,
             "control_phases": self.control_phases,
             "joint_positions": self.joint_positions,
             "joint_rotations": self.joint_rotations,
@@ -806,7 +821,7 @@ def layout(cfg: FeatureConfig | None = None) -> dict[str, dict[str, dict[str, in
             "targets": {"next_control_positions": 2 * c * 3, "next_control_phases": 2 * c},
         },
         "posenet": {
-            "inputs": {"control_positions": 2 * c * 3, "control_phases": 2 * c,
+            "inputs": {"control_root_positions": 2 * c * 3, "control_phases": 2 * c,
                        "joint_positions": j * 3, "joint_rotations": j * 6,
                        "joint_velocities": j * 3, "trajectory": k * 12, "goals": k * 12,
                        "interaction": cfg.interaction_dim, "ego": cfg.ego_cells,
@@ -827,7 +842,7 @@ def layout(cfg: FeatureConfig | None = None) -> dict[str, dict[str, dict[str, in
     pose_inputs = out["posenet"]["inputs"]
     baseline_inputs: dict[str, int] = {"contact_inputs": 8}
     baseline_inputs.update({k: v for k, v in pose_inputs.items()
-                            if k not in ("control_positions", "control_phases")})
+                            if k not in ("control_root_positions", "control_phases")})
     out["baseline"] = {"inputs": baseline_inputs, "targets": dict(out["posenet"]["targets"])}
     return out
 
@@ -920,7 +935,9 @@ def sequence_features(session: ProcessedSession, config: FeatureConfig | None = 
         interaction=interaction.astype(f32), ego=ego.astype(f32), global_phase=gphase.astype(f32),
         hand_phases=hand_phases.astype(f32), hand_targets=targets.astype(f32), hand_mask=mask,
         control_line=line.astype(f32), control_positions=ctrl_pos.astype(f32),
-        control_phases=ctrl_phase.astype(f32), future_joint_positions=future_joints.astype(f32),
+        control_phases=ctrl_phase.astype(f32),
+        control_root_positions=control_in_root(ctrl_pos, targets_root, mask).astype(f32),
+        future_joint_positions=future_joints.astype(f32),
         goal_relative_root=goal_rel.astype(f32), next_contacts=active[nxt],
         root_update=update.astype(f32),
         contact_condition=contact_net_condition(occupancy, centres_object).astype(f32),

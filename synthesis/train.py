@@ -87,7 +87,7 @@ PRESETS: tuple[str, ...] = ("paper", "cpu", "ci")
 
 #: PoseNet encoder name (Table 5) -> the feature groups concatenated as its input.
 ENCODER_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
-    "pose": {"C": ("control_positions", "control_phases"),
+    "pose": {"C": ("control_root_positions", "control_phases"),
              "JT": ("joint_positions", "joint_rotations", "joint_velocities", "trajectory"),
              "G": ("goals",), "I": ("interaction",), "E": ("ego",)},
 }

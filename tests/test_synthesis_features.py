@@ -84,7 +84,7 @@ def test_tpose_root_faces_plus_z(body_model):
 def test_features_invariant_to_world_yaw(session, features):
     moved = sequence_features(_yawed(session, 2.1), CFG)
     for name in ("joint_positions", "joint_rotations", "joint_velocities", "trajectory",
-                 "goals", "interaction", "control_line", "control_positions",
+                 "goals", "interaction", "control_line", "control_root_positions",
                  "future_joint_positions", "goal_relative_root", "root_update",
                  "hand_contacts_chair"):
         np.testing.assert_allclose(getattr(moved, name), getattr(features, name), atol=2e-3,
@@ -219,6 +219,10 @@ def test_hand_phases_and_control(session, features):
             expected = features.root[t, :3, :3].T @ (hand_s - features.hand_targets[t, h])
             np.testing.assert_allclose(last, expected, atol=1e-4)
             assert np.linalg.norm(first) > np.linalg.norm(last)
+            # PoseNet's copy is where the hand will be, in the root frame of t
+            in_root = features.root[t, :3, :3].T @ (hand_s - features.root[t, :3, 3])
+            np.testing.assert_allclose(features.control_root_positions[t, h, -1], in_root,
+                                       atol=1e-4)
             assert features.control_phases[t, h, -1] == pytest.approx(1.0)
             # the control line runs from the hand (relative to the contact) to zero
             hand = session.joints[t, CFG.hand_joints[h]].astype(np.float64)
@@ -230,6 +234,7 @@ def test_hand_phases_and_control(session, features):
         after = np.arange(ends[-1] + 1, len(active))
         assert not features.hand_mask[after, h].any()
         assert np.all(features.control_line[after, h] == 0)
+        assert np.all(features.control_root_positions[after, h] == 0)
     assert checked > 0
 
 
