@@ -1,5 +1,5 @@
-"""Rigid transforms (building, inverting, applying, fitting and averaging 4x4 poses) and mesh
-surface sampling.
+"""Rigid transforms (building, inverting, applying, fitting and averaging 4x4 poses), mesh
+surface sampling and analytic two-bone limb IK.
 
 Transforms are ``(..., 4, 4)`` float arrays mapping column vectors of the source frame into the
 target frame (``world_from_object`` maps object coordinates into world coordinates), metres.
@@ -127,3 +127,30 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 
     s = np.sqrt(r1)
     points = (1 - s) * tri[face, 0] + s * (1 - r2) * tri[face, 1] + s * r2 * tri[face, 2]
     return points, cross[face] / area[face, None]
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    """Unit vectors along the last axis (zero vectors stay zero)."""
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, 1e-12)
+
+
+def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
+                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Middle-joint position of a two-bone chain reaching ``target`` from ``root``.
+
+    Args:
+        root, target, pole: (T,3); the middle joint bends towards ``pole`` (a direction).
+    Returns:
+        middle (T,3), and the unit directions of the upper and lower bones (T,3) each.
+        Targets out of reach are clamped to 99.9% of full extension along the same line.
+    """
+    to_target = target - root
+    dist = np.linalg.norm(to_target, axis=-1, keepdims=True)
+    e = to_target / np.maximum(dist, 1e-9)
+    d = np.clip(dist, abs(len_upper - len_lower) + 1e-4, 0.999 * (len_upper + len_lower))
+    cos_a = np.clip((len_upper**2 + d**2 - len_lower**2) / (2 * len_upper * d), -1, 1)
+    bend = normalize(pole - (pole * e).sum(-1, keepdims=True) * e)
+    middle = root + len_upper * (cos_a * e + np.sqrt(1 - cos_a**2) * bend)
+    end = root + e * d
+    return middle, normalize(middle - root), normalize(end - middle)

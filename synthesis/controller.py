@@ -53,6 +53,7 @@ from couch.synthesis.features import (
     to_root,
     voxel_grid,
 )
+from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.train import load_trained, pose_inputs
 
 __all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"]
@@ -222,11 +223,15 @@ class Synthesizer:
             for): within this many metres of the sit goal the next root is blended from the
             ego-centric update towards the network's goal-relative prediction of it, with weight
             (sit action) x (1 - distance / radius); 0 turns it off.
+        hand_ik: "couch" only: each frame, two-bone arm IK moves each controlled palm the
+            fraction (ControlNet's local phase of that hand) of the way onto its contact
+            (:mod:`couch.synthesis.hand_ik`; the fitting the paper's appendix suggests and
+            leaves out of its evaluation). Off by default: the networks alone.
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
-                 timeout: float = 5.0, blend_radius: float = 1.0) -> None:
+                 timeout: float = 5.0, blend_radius: float = 1.0, hand_ik: bool = False) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         self.method, self.device = method, torch.device(device)
@@ -242,6 +247,7 @@ class Synthesizer:
                                                                   device)
         self.hold, self.reach, self.timeout = hold, reach, timeout
         self.blend_radius = blend_radius
+        self.hand_ik = hand_ik and method == "couch"
         self._body_setup()
 
     # ------------------------------------------------------------------ body helpers
@@ -256,6 +262,10 @@ class Synthesizer:
         self.wrists = np.array(wrists)
         # Hand joints 22/23 hang off the wrists by their rest offsets (rotated by the wrists).
         self.hand_offsets = self.rest[list(self.cfg.hand_joints)] - self.rest[wrists]
+        template = model.v_template.double().numpy()
+        palms = [template[model.contact_vertices[f"{side}_hand"]].mean(0)
+                 for side in ("left", "right")]
+        self.arm_rig = ArmRig(rest=self.rest, palm=np.stack(palms) - self.rest[wrists])
         out = model(global_orient=np.zeros((1, 3)), body_pose=standing_pose()[None])
         joints = out.joints[0].detach().double().numpy()
         joints[:, 1] -= out.vertices[0, :, 1].min().item()  # feet on the floor
@@ -441,6 +451,14 @@ class Synthesizer:
         s.jpos = out["next_joint_positions"].reshape(batch, -1, 3)
         s.jrot = out["next_joint_rotations"].reshape(batch, -1, 6)
         s.jvel = out["next_joint_velocities"].reshape(batch, -1, 3)
+        if self.hand_ik:
+            # The contacts in the new root's frame, which the predicted pose is expressed in.
+            goals = np.where(mask[..., None], to_root(safe, s.root), 0.0)
+            rot, moved = reach(s.jpos[:, 0], sixd_to_matrix(s.jrot), goals,
+                               hand_phase * mask, self.arm_rig)
+            s.jrot = matrix_to_6d(rot)
+            for j, delta in moved.items():
+                s.jpos[:, j] += delta
         fut = out["future_trajectory"].reshape(batch, -1, 12)
         fut[..., 1] = 0.0  # roots live on the floor
         fut[..., 3:9] = matrix_to_6d(sixd_to_matrix(fut[..., 3:9]))

@@ -86,9 +86,9 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
                  "--seconds", "1", "--contact-samples", "0", "-q"])
     assert code == 0, capsys.readouterr().err
     table = (tmp_path / "eval.md").read_text()
-    assert "| couch |" in table and "| baseline |" in table
+    assert "| couch |" in table and "| couch+ik |" in table and "| baseline |" in table
     rows = json.loads((tmp_path / "eval.json").read_text())["rows"]
-    assert set(rows) == {"couch", "baseline"}
+    assert set(rows) == {"couch", "couch+ik", "baseline"}
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

@@ -30,6 +30,8 @@ from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
 __all__ = ["main", "simulated_chairs"]
 
 _KINDS = ("armchair", "straight", "sofa")
+#: A method name ending in this runs that method with ``Synthesizer(hand_ik=True)``.
+IK_SUFFIX = "+ik"
 
 
 def simulated_chairs(count: int, seed: int) -> list[EvalChair]:
@@ -48,7 +50,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("run", help="couch-train output folder")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--baseline-run", help="run with the baseline net (default: RUN)")
-    p.add_argument("--methods", default="couch,baseline", help="comma-separated")
+    p.add_argument("--methods", default="couch,couch+ik,baseline",
+                   help="comma-separated: couch, baseline, couch+ik (couch with hand IK)")
     p.add_argument("--chairs", type=int, default=6, help="held-out simulated chairs")
     p.add_argument("--chair-dir", help="evaluate on these chair meshes instead")
     p.add_argument("--trials", type=int, default=8, help="trials per chair")
@@ -74,7 +77,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--trials, --seconds and --chairs must be positive")
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         synths = {m: Synthesizer(args.baseline_run if m == "baseline" and args.baseline_run
-                                 else args.run, m) for m in methods}
+                                 else args.run, m.removesuffix(IK_SUFFIX),
+                                 hand_ik=m.endswith(IK_SUFFIX)) for m in methods}
         if args.chair_dir:
             paths = sorted(p for p in Path(args.chair_dir).iterdir()
                            if p.suffix.lower() in (".obj", ".ply"))

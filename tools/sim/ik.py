@@ -11,13 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from couch.body import PARENTS
+from couch.geometry import normalize, two_bone_ik  # noqa: F401  (re-exported for the motion code)
 from couch.rotations import matrix_to_quat, quat_to_matrix
-
-
-def normalize(v: np.ndarray) -> np.ndarray:
-    """Unit vectors along the last axis (zero vectors stay zero)."""
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, 1e-12)
 
 
 def frame_from(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
@@ -54,27 +49,6 @@ def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
     else:
         rows = [[c, -s, z], [s, c, z], [z, z, o]]
     return np.stack([np.stack(r, -1) for r in rows], -2)
-
-
-def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
-                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Middle-joint position of a two-bone chain reaching ``target`` from ``root``.
-
-    Args:
-        root, target, pole: (T,3); the middle joint bends towards ``pole`` (a direction).
-    Returns:
-        middle (T,3), and the unit directions of the upper and lower bones (T,3) each.
-        Targets out of reach are clamped to 99.9% of full extension along the same line.
-    """
-    to_target = target - root
-    dist = np.linalg.norm(to_target, axis=-1, keepdims=True)
-    e = to_target / np.maximum(dist, 1e-9)
-    d = np.clip(dist, abs(len_upper - len_lower) + 1e-4, 0.999 * (len_upper + len_lower))
-    cos_a = np.clip((len_upper**2 + d**2 - len_lower**2) / (2 * len_upper * d), -1, 1)
-    bend = normalize(pole - (pole * e).sum(-1, keepdims=True) * e)
-    middle = root + len_upper * (cos_a * e + np.sqrt(1 - cos_a**2) * bend)
-    end = root + e * d
-    return middle, normalize(middle - root), normalize(end - middle)
 
 
 class Skeleton:
