@@ -38,6 +38,7 @@ from couch.rotations import matrix_to_6d, matrix_to_axis_angle, sixd_to_matrix
 from couch.synthesis.data import feature_config_from_json
 from couch.synthesis.features import (
     SIT,
+    WALK,
     FeatureConfig,
     OccupancyGrid,
     advance_phase,
@@ -151,6 +152,23 @@ def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float
     return yaw_transform(centre[0], centre[2], 0.0), half
 
 
+def walk_when_far(future: np.ndarray, root: np.ndarray, goal: np.ndarray, radius: float
+                  ) -> np.ndarray:
+    """The future trajectory (B,K,12) with its action labels (last 3) set to walk for the
+    characters whose root (B,4,4) is farther than ``radius`` m (horizontally) from its goal
+    (B,4,4); unchanged for the others, and for all with ``radius`` <= 0.
+
+    Far from the chair the approach is the user's command, as NSM's action input is: fed its
+    own labels, PoseNet once drifted into idle 3 m away and never arrived.
+    """
+    if radius <= 0:
+        return future
+    far = np.hypot(*(root[:, [0, 2], 3] - goal[:, [0, 2], 3]).T) > radius
+    out = np.array(future)
+    out[far, :, 9:] = np.eye(3)[WALK]
+    return out
+
+
 @dataclasses.dataclass
 class SynthesisResult:
     """B synthesised motions of T frames at ``fps`` (world frame, metres, radians).
@@ -223,15 +241,20 @@ class Synthesizer:
             for): within this many metres of the sit goal the next root is blended from the
             ego-centric update towards the network's goal-relative prediction of it, with weight
             (sit action) x (1 - distance / radius); 0 turns it off.
+        walk_radius: farther than this (m) from the sit goal, the predicted trajectory's
+            action labels are set to walk before they are fed back (the approach is the
+            command, as NSM's action input); 0 leaves them to the network.
         hand_ik: "couch" only: each frame, two-bone arm IK moves each controlled palm the
-            fraction (ControlNet's local phase of that hand) of the way onto its contact
+            fraction (ControlNet's local phase of that hand, or PoseNet's probability that the
+            pelvis is on the seat if higher) of the way onto its contact
             (:mod:`couch.synthesis.hand_ik`; the fitting the paper's appendix suggests and
             leaves out of its evaluation). Off by default: the networks alone.
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
-                 timeout: float = 5.0, blend_radius: float = 1.0, hand_ik: bool = False) -> None:
+                 timeout: float = 5.0, blend_radius: float = 1.0, walk_radius: float = 2.0,
+                 hand_ik: bool = False) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         self.method, self.device = method, torch.device(device)
@@ -246,7 +269,7 @@ class Synthesizer:
             self.control_net, self.control_stats, _ = load_trained(run_dir, "control", which,
                                                                   device)
         self.hold, self.reach, self.timeout = hold, reach, timeout
-        self.blend_radius = blend_radius
+        self.blend_radius, self.walk_radius = blend_radius, walk_radius
         self.hand_ik = hand_ik and method == "couch"
         self._body_setup()
 
@@ -454,8 +477,13 @@ class Synthesizer:
         if self.hand_ik:
             # The contacts in the new root's frame, which the predicted pose is expressed in.
             goals = np.where(mask[..., None], to_root(safe, s.root), 0.0)
+            # ControlNet's phase times the hand in; once PoseNet has the pelvis on the seat the
+            # asked contact is held whatever the phase (ControlNet's phase stayed near 0.3 in
+            # a fifth of the evaluation's trials, leaving seated palms ~10 cm off).
+            seated_p = np.clip(out["next_contacts"][:, CONTACT_NAMES.index("pelvis")], 0.0, 1.0)
+            weight = np.maximum(hand_phase, seated_p[:, None])
             rot, moved = reach(s.jpos[:, 0], sixd_to_matrix(s.jrot), goals,
-                               hand_phase * mask, self.arm_rig)
+                               weight * mask, self.arm_rig)
             s.jrot = matrix_to_6d(rot)
             for j, delta in moved.items():
                 s.jpos[:, j] += delta
@@ -464,7 +492,7 @@ class Synthesizer:
         fut[..., 3:9] = matrix_to_6d(sixd_to_matrix(fut[..., 3:9]))
         act = np.clip(fut[..., 9:], 0.0, None)
         fut[..., 9:] = act / np.maximum(act.sum(-1, keepdims=True), 1e-6)
-        s.future = fut
+        s.future = walk_when_far(fut, s.root, s.goal, self.walk_radius)
         seated = (out["next_contacts"][:, CONTACT_NAMES.index("pelvis")] > 0.5) | (
             fut[:, 0, 9 + SIT] > 0.5)
         s.phase = advance_phase(s.phase, out["global_phase_update"][:, 0], seated)

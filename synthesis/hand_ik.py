@@ -3,10 +3,12 @@ paper's evaluation ("it would be possible to fit the predicted pose to the predi
 position ... to further improve the satisfaction of the contact constraints").
 
 Each frame, analytic two-bone IK of shoulder-elbow-wrist moves a point of each palm a fraction
-of the way to its contact: the fraction is ControlNet's local phase of that hand (0 when a reach
-starts, 1 at the contact), so ControlNet's plan still decides when the hand arrives, and the
-arm blends in from the network's own pose. The wrist keeps its global orientation (the palm
-stays as the network turned it); the elbow bends in the plane it was already bent in.
+of the way to its contact: the controller gives ControlNet's local phase of that hand (0 when a
+reach starts, 1 at the contact), or PoseNet's probability that the pelvis is seated if that is
+higher, so ControlNet's plan decides when the hand arrives while sitting down, a seated
+character holds the asked contact, and the arm blends in from the network's own pose. The
+wrist keeps its global orientation (the palm stays as the network turned it); the elbow bends
+in the plane it was already bent in.
 
 Everything is in the character's root frame (metres), batch first, on the root-frame global
 joint rotations the controller carries (``jrot`` as 3x3) and the skeleton they give by forward

@@ -260,3 +260,21 @@ def test_bidirectional_blend_pulls_a_sitter_onto_the_goal(synth):
     assert heading == pytest.approx(ego_heading + w * np.angle(np.exp(-1j * ego_heading)))
     np.testing.assert_allclose(nxt[3, [0, 2], 3], (1 - w) * ego[3, [0, 2], 3] + w * np.array(
         [0.2, -0.1]), atol=1e-9)
+
+
+def test_far_characters_are_told_to_walk():
+    """Beyond ``walk_radius`` of the goal the fed-back action labels are walk; nearer, and with
+    the radius 0, they are the network's."""
+    from couch.synthesis.controller import walk_when_far
+    from couch.synthesis.features import IDLE, WALK
+
+    goal = yaw_transform(0.0, 0.0, 0.0)[None].repeat(3, 0)
+    root = yaw_transform(np.array([0.0, 1.0, 3.0]), 0.0, 0.0)  # at the goal, 1 m, 3 m
+    future = np.zeros((3, 7, 12))
+    future[..., 9 + IDLE] = 1.0
+    out = walk_when_far(future, root, goal, 2.0)
+    np.testing.assert_array_equal(out[:2], future[:2])
+    np.testing.assert_array_equal(out[2, :, 9:], np.tile(np.eye(3)[WALK], (7, 1)))
+    np.testing.assert_array_equal(out[2, :, :9], future[2, :, :9])
+    assert future[2, 0, 9 + IDLE] == 1.0  # the input is not changed in place
+    np.testing.assert_array_equal(walk_when_far(future, root, goal, 0.0), future)
