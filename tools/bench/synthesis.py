@@ -39,6 +39,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", help="trained run (default: a 1-epoch paper-size throwaway run)")
     ap.add_argument("--method", default="couch", choices=["couch", "baseline"])
+    ap.add_argument("--hand-ik", action="store_true", help="couch with runtime hand IK")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--seconds", type=float, default=4.0, help="synthesised seconds per run")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -46,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         run = args.run or _throwaway_run(tmp)
-        syn = Synthesizer(run, args.method)
+        syn = Synthesizer(run, args.method, hand_ik=args.hand_ik)
         chair = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
         scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
         left = np.asarray(chair.landmarks.left_armrest)
