@@ -257,6 +257,9 @@ class Synthesizer:
                  hand_ik: bool = False) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        if hand_ik and method != "couch":
+            raise ValueError(f"hand_ik weights the IK by ControlNet's phases: method 'couch' "
+                             f"only, not {method!r}")
         self.method, self.device = method, torch.device(device)
         self.run_dir = Path(run_dir)
         net = "pose" if method == "couch" else "baseline"
@@ -270,7 +273,7 @@ class Synthesizer:
                                                                   device)
         self.hold, self.reach, self.timeout = hold, reach, timeout
         self.blend_radius, self.walk_radius = blend_radius, walk_radius
-        self.hand_ik = hand_ik and method == "couch"
+        self.hand_ik = hand_ik
         self._body_setup()
 
     # ------------------------------------------------------------------ body helpers

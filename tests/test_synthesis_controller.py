@@ -132,6 +132,8 @@ def test_baseline_runs_in_the_same_harness(ci_run, scene, chair):
     r = syn.synthesize(scene, np.array([[0.2, 0.9, np.pi]]),
                        np.array([[chair[2], [np.nan] * 3]]), seconds=1.0)
     assert r.method == "baseline" and np.all(np.isfinite(r.joints))
+    with pytest.raises(ValueError, match=r"hand_ik.*'couch' only"):
+        Synthesizer(ci_run.run_dir, "baseline", hand_ik=True)
 
 
 def test_exports(result, tmp_path):
