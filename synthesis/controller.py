@@ -227,6 +227,7 @@ class _State:
     index: np.ndarray  # (B,) int, active contact set
     since: np.ndarray  # (B,) frames since that set became active
     held: np.ndarray  # (B,) frames all its hands have been within reach
+    ik_offset: np.ndarray | None = None  # (B,22,3) world displacement hand IK gave last frame
 
 
 class Synthesizer:
@@ -488,8 +489,17 @@ class Synthesizer:
             rot, moved = reach(s.jpos[:, 0], sixd_to_matrix(s.jrot), goals,
                                weight * mask, self.arm_rig)
             s.jrot = matrix_to_6d(rot)
-            for j, delta in moved.items():
-                s.jpos[:, j] += delta
+            delta = np.zeros_like(s.jpos)
+            for j, d in moved.items():
+                delta[:, j] = d
+            s.jpos = s.jpos + delta
+            # The fed-back velocities are those of the joints as moved: PoseNet's plus the
+            # change of the IK displacement since the last frame (world, into the new root).
+            world = np.einsum("bij,bkj->bki", s.root[:, :3, :3], delta)
+            prev = np.zeros_like(world) if s.ik_offset is None else s.ik_offset
+            s.jvel = s.jvel + cfg.fps * np.einsum("bji,bkj->bki", s.root[:, :3, :3],
+                                                  world - prev)
+            s.ik_offset = world
         fut = out["future_trajectory"].reshape(batch, -1, 12)
         fut[..., 1] = 0.0  # roots live on the floor
         fut[..., 3:9] = matrix_to_6d(sixd_to_matrix(fut[..., 3:9]))

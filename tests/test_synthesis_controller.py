@@ -136,6 +136,16 @@ def test_baseline_runs_in_the_same_harness(ci_run, scene, chair):
         Synthesizer(ci_run.run_dir, "baseline", hand_ik=True)
 
 
+def test_hand_ik_runs_in_the_controller(ci_run, scene, chair):
+    """Machinery only (the ci networks' phases are noise; tests/test_synthesis_hand_ik.py
+    checks the IK itself): the IK'd run gives finite motion with control on."""
+    syn = Synthesizer(ci_run.run_dir, "couch", hand_ik=True)
+    starts, series = np.array([[0.2, 0.9, np.pi]]), np.array([[chair[2], [np.nan] * 3]])
+    r = syn.synthesize(scene, starts, series, seconds=1.0)
+    assert r.joints.shape == (1, 30, 24, 3) and np.all(np.isfinite(r.joints))
+    assert np.all(np.isfinite(r.body_pose)) and r.control_on[..., 0].any()
+
+
 def test_exports(result, tmp_path):
     session = to_processed(result, 1)
     validate(session)
