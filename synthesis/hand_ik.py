@@ -21,7 +21,7 @@ import dataclasses
 
 import numpy as np
 
-from couch.body import JOINT_INDEX, PARENTS
+from couch.body import JOINT_INDEX, Skeleton
 from couch.geometry import normalize, two_bone_ik
 
 __all__ = ["ARMS", "ArmRig", "forward_positions", "reach"]
@@ -45,25 +45,16 @@ class ArmRig:
     rest: np.ndarray
     palm: np.ndarray
 
-    def bone(self, joint: int) -> np.ndarray:
-        """(3,) rest vector from ``joint``'s parent to it."""
-        return self.rest[joint] - self.rest[PARENTS[joint]]
+    @property
+    def skeleton(self) -> Skeleton:
+        return Skeleton(self.rest)
 
 
 def forward_positions(pelvis: np.ndarray, rot: np.ndarray, rig: ArmRig,
                       joints: tuple[int, ...]) -> dict[int, np.ndarray]:
     """Positions (B,3) of ``joints`` and their ancestors from the pelvis (B,3) and global
-    rotations rot (B,J,3,3) with J > every index needed: p_j = p_parent + R_parent · bone_j."""
-    pos = {0: pelvis}
-    needed = set(joints)
-    for j in list(joints):
-        while PARENTS[j] > 0:
-            j = PARENTS[j]
-            needed.add(j)
-    for j in sorted(needed - {0}):  # parents precede children in SMPL order
-        p = PARENTS[j]
-        pos[j] = pos[p] + rot[:, p] @ rig.bone(j)
-    return pos
+    rotations rot (B,J,3,3) (:meth:`Skeleton.forward`)."""
+    return rig.skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))), list(joints))
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -102,7 +93,7 @@ def reach(pelvis: np.ndarray, rot: np.ndarray, goals: np.ndarray, weights: np.nd
         palm = wrist + rot[:, w] @ rig.palm[h]
         goal = np.where(weights[:, h, None] > 0, np.nan_to_num(goals[:, h]), palm)
         wrist_goal = wrist + weights[:, h, None] * (goal - palm)
-        upper, lower = np.linalg.norm(rig.bone(e)), np.linalg.norm(rig.bone(w))
+        upper, lower = rig.skeleton.bone_length(s, e), rig.skeleton.bone_length(e, w)
         # bend towards where the elbow already points, away from the shoulder-wrist line
         line = normalize(wrist - shoulder)
         pole = elbow - shoulder

@@ -96,7 +96,7 @@ def test_out_of_reach_goal_straightens_the_arm_towards_it(rig):
     after = np.linalg.norm(_palms(pelvis, new, rig)[:, 0] - far, axis=-1)
     assert np.all(after < before)
     p = forward_positions(pelvis, new, rig, (20,))
-    upper = np.linalg.norm(rig.bone(18))
-    lower = np.linalg.norm(rig.bone(20))
+    upper = rig.skeleton.bone_length(16, 18)
+    lower = rig.skeleton.bone_length(18, 20)
     np.testing.assert_allclose(np.linalg.norm(p[20] - p[16], axis=-1), 0.999 * (upper + lower),
                                rtol=1e-6)

@@ -18,12 +18,14 @@ from couch.body.skeleton import (
     NUM_BODY_JOINTS,
     NUM_JOINTS,
     PARENTS,
+    Skeleton,
     contact_vertex_sets,
 )
 
 __all__ = [
     "BUNDLED_MODELS", "CONTACT_NAMES", "JOINT_INDEX", "JOINT_NAMES", "NUM_BODY_JOINTS",
-    "NUM_JOINTS", "PARENTS", "BodyModel", "BodyModelError", "BodyOutput", "blend_shapes",
-    "body_pose", "bundled_manifest", "bundled_model_dir", "contact_vertex_sets", "lbs",
-    "load_body_model", "rigid_transforms", "sitting_pose", "standing_pose", "vertices_to_joints",
+    "NUM_JOINTS", "PARENTS", "BodyModel", "BodyModelError", "BodyOutput", "Skeleton",
+    "blend_shapes", "body_pose", "bundled_manifest", "bundled_model_dir", "contact_vertex_sets",
+    "lbs", "load_body_model", "rigid_transforms", "sitting_pose", "standing_pose",
+    "vertices_to_joints",
 ]

@@ -59,3 +59,39 @@ def contact_vertex_sets(v_template: np.ndarray, weights: np.ndarray,
             ids = ids[behind & below]
         sets[name] = np.sort(ids)
     return sets
+
+
+class Skeleton:
+    """Forward kinematics over SMPL's 24 joints for one shaped body (rest joints (24,3)), in
+    numpy from global joint rotations (the simulator's motion and the runtime hand IK)."""
+
+    def __init__(self, rest_joints: np.ndarray) -> None:
+        self.rest = np.asarray(rest_joints, dtype=np.float64)
+        self.parents = np.asarray(PARENTS)
+
+    def offset(self, joint: int) -> np.ndarray:
+        """Rest-pose vector from the parent to ``joint`` (3,)."""
+        return self.rest[joint] - self.rest[self.parents[joint]]
+
+    def bone_length(self, a: int, b: int) -> float:
+        return float(np.linalg.norm(self.rest[b] - self.rest[a]))
+
+    def forward(self, root_pos: np.ndarray, global_rot: dict[int, np.ndarray],
+                upto: list[int]) -> dict[int, np.ndarray]:
+        """World positions (T,3) of the joints in ``upto`` given global rotations of their
+        ancestors (joint index -> (T,3,3)); ``root_pos`` is the pelvis joint (T,3)."""
+        pos = {0: root_pos}
+        needed = set(upto) | {a for u in upto for a in self.ancestors(u)}
+        for j in sorted(needed):
+            if j == 0:
+                continue
+            p = self.parents[j]
+            pos[j] = pos[p] + global_rot[p] @ self.offset(j)
+        return pos
+
+    def ancestors(self, joint: int) -> list[int]:
+        chain = []
+        while self.parents[joint] >= 0:
+            joint = int(self.parents[joint])
+            chain.append(joint)
+        return chain

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from couch.body import PARENTS
+from couch.body import PARENTS, Skeleton  # noqa: F401  (Skeleton re-exported for the motion code)
 from couch.geometry import normalize, two_bone_ik  # noqa: F401  (re-exported for the motion code)
 from couch.rotations import matrix_to_quat, quat_to_matrix
 
@@ -49,41 +49,6 @@ def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
     else:
         rows = [[c, -s, z], [s, c, z], [z, z, o]]
     return np.stack([np.stack(r, -1) for r in rows], -2)
-
-
-class Skeleton:
-    """Forward kinematics over SMPL's 24 joints for one shaped body (rest joints (24,3))."""
-
-    def __init__(self, rest_joints: np.ndarray) -> None:
-        self.rest = np.asarray(rest_joints, dtype=np.float64)
-        self.parents = np.asarray(PARENTS)
-
-    def offset(self, joint: int) -> np.ndarray:
-        """Rest-pose vector from the parent to ``joint`` (3,)."""
-        return self.rest[joint] - self.rest[self.parents[joint]]
-
-    def bone_length(self, a: int, b: int) -> float:
-        return float(np.linalg.norm(self.rest[b] - self.rest[a]))
-
-    def forward(self, root_pos: np.ndarray, global_rot: dict[int, np.ndarray],
-                upto: list[int]) -> dict[int, np.ndarray]:
-        """World positions (T,3) of the joints in ``upto`` given global rotations of their
-        ancestors (joint index -> (T,3,3)); ``root_pos`` is the pelvis joint (T,3)."""
-        pos = {0: root_pos}
-        needed = set(upto) | {a for u in upto for a in self.ancestors(u)}
-        for j in sorted(needed):
-            if j == 0:
-                continue
-            p = self.parents[j]
-            pos[j] = pos[p] + global_rot[p] @ self.offset(j)
-        return pos
-
-    def ancestors(self, joint: int) -> list[int]:
-        chain = []
-        while self.parents[joint] >= 0:
-            joint = int(self.parents[joint])
-            chain.append(joint)
-        return chain
 
 
 def local_from_global(global_rot: dict[int, np.ndarray], num_frames: int) -> np.ndarray:
