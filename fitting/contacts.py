@@ -105,6 +105,10 @@ class ContactConfig:
     min_seated: float = 0.5  # s: a pelvis contact shorter than this is no episode
     merge_gap: float = 1.0  # s: seated periods closer than this are one episode
     min_hand: float = 0.3  # s: total supporting contact of a hand that makes a hand episode
+    # s before the pelvis lands from which a hand's contact counts as support: a hand brushing
+    # an armrest while the subject turns in front of the chair, or while rising, is not how
+    # they sat (the COUCH types describe the sitting down and the seated period)
+    support_before: float = 1.5
     lap_distance: float = 0.03  # m: a hand this close to a thigh rests on the lap (0: no test)
     support_lean: float = 6.0  # deg the torso leans towards a hand that takes weight
     foot_lift: float = 0.05  # m: a seated foot this far above the other is lifted (free)
@@ -116,7 +120,8 @@ class ContactConfig:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ContactConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("smooth", "speed_smooth", "min_duration", "max_gap", "walk_smooth",
-                     "min_seated", "merge_gap", "min_hand", "min_lift", "lap_distance",
+                     "min_seated", "merge_gap", "min_hand", "support_before", "min_lift",
+                     "lap_distance",
                      "support_lean", "edge_walk_speed", "edge_walk_drop"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ContactConfig.{name} must be >= 0, got {getattr(self, name)}")
@@ -544,7 +549,8 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
     supported on the chair, else 4. A hand supports when it touches the chair for ``min_hand``
     s off the lap, or touches it that long (on the lap or not) while the torso leans towards it
     by ``support_lean`` as the subject sits down: a palm on the seat right beside the thigh
-    touches both, and the weight it takes tilts the torso.
+    touches both, and the weight it takes tilts the torso. Only touches from
+    ``support_before`` s before the pelvis lands to its last seated frame count.
     """
     cfg = config or ContactConfig()
     active = np.asarray(active, bool)
@@ -583,8 +589,9 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
         # The lean while sitting down: the second before the pelvis lands and a little after.
         sit = slice(max(0, s - _frames(1.0, fps)), min(t, s + _frames(0.3, fps)))
         toward = np.array([1.0, -1.0]) * lean[sit].mean() >= np.deg2rad(cfg.support_lean)
-        left, right = (off_lap[ep].sum(axis=0) >= min_hand) | (
-            toward & (hands[ep].sum(axis=0) >= min_hand))
+        held = slice(max(ep.start, s - _frames(cfg.support_before, fps)), e)
+        left, right = (off_lap[held].sum(axis=0) >= min_hand) | (
+            toward & (hands[held].sum(axis=0) >= min_hand))
         if lifted.any():
             code = FREE
         elif left and right:
