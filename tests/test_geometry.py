@@ -1,4 +1,4 @@
-"""Rigid transforms: inverse, Kabsch fit, averaging, look-at."""
+"""Rigid transforms: inverse, Kabsch fit, averaging, look-at; vertex normals."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from couch.geometry import (
     look_at,
     make_transform,
     transform_distance,
+    vertex_normals,
 )
 
 
@@ -60,3 +61,29 @@ def test_look_at_points_the_optical_axis_at_the_target():
     assert np.allclose(target_cam[:2], 0.0, atol=1e-12) and target_cam[2] > 0
     # world up (+Y) appears as image up (−Y in OpenCV camera coordinates)
     assert (invert_transform(pose)[:3, :3] @ np.array([0.0, 1.0, 0.0]))[1] < 0
+
+
+def test_vertex_normals_of_a_sphere_and_a_batch():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    n = vertex_normals(v, f)
+    assert n.shape == v.shape
+    # a sphere's area-weighted normals point radially outwards (within ~1 deg at 642 vertices)
+    np.testing.assert_allclose(n, v / 0.5, atol=0.02)
+    # the same as summing each face's area vector into its three corners one by one
+    tri = v[f]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    slow = np.zeros_like(v)
+    for face, normal in zip(f, fn, strict=True):
+        slow[face] += normal
+    np.testing.assert_allclose(n, slow / np.linalg.norm(slow, axis=1, keepdims=True),
+                               atol=1e-12)
+    # any leading batch axes, more meshes than one chunk; rotated meshes rotate their normals
+    rot = Rotation.random(2 * 21, rng=np.random.default_rng(0)).as_matrix().reshape(2, 21, 3, 3)
+    batch = np.einsum("bkij,vj->bkvi", rot, v)
+    nb = vertex_normals(batch, f)
+    assert nb.shape == batch.shape
+    np.testing.assert_allclose(nb, np.einsum("bkij,vj->bkvi", rot, n), atol=1e-12)
+    assert vertex_normals(v.astype(np.float32), f).dtype == np.float32
