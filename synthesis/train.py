@@ -49,6 +49,7 @@ from couch.synthesis.data import (
     build_cache,
     collate_batch,
     contact_rows,
+    feature_config_from_json,
     find_sequences,
     fit_stats,
     split,
@@ -752,6 +753,15 @@ def load_trained(run_dir: str | os.PathLike, net: str, which: str = "best",
         raise FileNotFoundError(f"{path}: no such file (has {net} been trained in {run_dir}?)")
     ck = torch.load(path, map_location=device, weights_only=True)
     meta = json.loads(ck["meta"])
+    if net in ENCODER_GROUPS:
+        # A run trained on an older feature layout would fail at the first synthesised frame.
+        spec = layout(feature_config_from_json(json.dumps(meta["feature_config"])))[
+            _LAYOUT_KEY[net]]
+        if list(meta["groups_in"]) != list(spec["inputs"]):
+            raise ValueError(
+                f"{path}: {net} was trained on feature groups {meta['groups_in']}, this couch "
+                f"builds {list(spec['inputs'])} (the features changed since); retrain it with "
+                f"couch-train")
     cfg = TrainConfig.from_json(json.dumps(meta["train_config"]))
     model = _build_model(net, cfg, meta["model_args"])
     model.load_state_dict(ck["model"])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import os
 import shutil
 
@@ -123,6 +124,22 @@ def test_load_trained_matches_the_trained_model(trained):
         assert meta["train_config"]["preset"] == "ci"
         assert best.sample(x["contact_condition"][:2], 3).shape == (2, 3, 6)
     assert isinstance(FeatureStats.load(trained.nets["pose"].dir / "stats.npz"), FeatureStats)
+
+
+def test_a_run_on_older_features_is_a_clear_error(trained, tmp_path):
+    """A PoseNet whose checkpoint names feature groups this couch no longer builds (C+ was
+    relative to the contact before format 5) is refused at load, naming the file."""
+    old = tmp_path / "run" / "pose"
+    shutil.copytree(trained.nets["pose"].dir, old)
+    ck = torch.load(old / "best.pt", weights_only=True)
+    meta = json.loads(ck["meta"])
+    meta["groups_in"] = ["control_positions" if g == "control_root_positions" else g
+                         for g in meta["groups_in"]]
+    ck["meta"] = json.dumps(meta)
+    torch.save(ck, old / "best.pt")
+    with pytest.raises(ValueError, match=r"best\.pt: pose was trained on feature groups.*"
+                                         r"retrain"):
+        load_trained(tmp_path / "run", "pose")
 
 
 def test_cache_reused_then_rebuilt_and_skips(sim, tmp_path):
