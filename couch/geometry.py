@@ -154,13 +154,16 @@ def normalize(v: np.ndarray) -> np.ndarray:
 
 
 def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
-                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                len_lower: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Middle-joint position of a two-bone chain reaching ``target`` from ``root``.
 
     Args:
         root, target, pole: (T,3); the middle joint bends towards ``pole`` (a direction).
     Returns:
-        middle (T,3), and the unit directions of the upper and lower bones (T,3) each.
+        middle (T,3), the unit directions of the upper and lower bones (T,3) each, and the
+        unit hinge axis (T,3) of the chain's plane, ``root→target × bend direction``: it is
+        perpendicular to both bones, so (unlike ``pole``, which can line up with a bone) it
+        fixes their twist without ambiguity.
         Targets out of reach are clamped to 99.9% of full extension along the same line.
     """
     to_target = target - root
@@ -171,4 +174,5 @@ def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_uppe
     bend = normalize(pole - (pole * e).sum(-1, keepdims=True) * e)
     middle = root + len_upper * (cos_a * e + np.sqrt(1 - cos_a**2) * bend)
     end = root + e * d
-    return middle, normalize(middle - root), normalize(end - middle)
+    hinge = normalize(np.cross(e, bend))
+    return middle, normalize(middle - root), normalize(end - middle), hinge

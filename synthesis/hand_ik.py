@@ -98,7 +98,7 @@ def reach(pelvis: np.ndarray, rot: np.ndarray, goals: np.ndarray, weights: np.nd
         line = normalize(wrist - shoulder)
         pole = elbow - shoulder
         pole = pole - np.sum(pole * line, -1, keepdims=True) * line
-        new_elbow, _, lower_dir = two_bone_ik(shoulder, wrist_goal, pole, upper, lower)
+        new_elbow, _, lower_dir, _ = two_bone_ik(shoulder, wrist_goal, pole, upper, lower)
         new_wrist = new_elbow + lower * lower_dir
         turn_upper = _rotation_between(elbow - shoulder, new_elbow - shoulder)
         turn_lower = _rotation_between(np.einsum("bij,bj->bi", turn_upper, wrist - elbow),

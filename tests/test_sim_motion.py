@@ -104,3 +104,16 @@ def test_motion_only_dataset_skips_an_implausible_slot(tmp_path):
     assert not (tmp_path / "motion_00000.h5").exists()
     with pytest.raises(ValueError, match="--chair must be one of"):
         simulate_motion_dataset(tmp_path / "bad", 1, seed=3, chair="throne", progress=False)
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_joints_move_at_human_speeds(case, sequences):
+    # IK branch flips (a limb spinning 180° about its bone between frames) showed up as hands
+    # and toes jumping 0.5-0.8 m in one 30 fps frame (15-25 m/s). Arms of people sitting down
+    # and reaching for a chair peak near 3 m/s; the procedural gait's swinging toes reach
+    # ~3.5-4x the walking speed (up to ~5.7 m/s), so the whole body gets a looser bound.
+    _, _, _, truth = sequences[case]
+    speed = np.linalg.norm(np.diff(truth.joints, axis=0), axis=-1) * 30.0  # (T-1, 24) m/s
+    arms = slice(16, 24)  # shoulders, elbows, wrists, hands
+    assert speed[:, arms].max() < 4.0, speed[:, arms].max()
+    assert speed.max() < 6.0, (speed.max(), speed.max(0).argmax())

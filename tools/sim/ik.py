@@ -51,6 +51,26 @@ def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
     return np.stack([np.stack(r, -1) for r in rows], -2)
 
 
+def limb_rotations(rest_upper: np.ndarray, rest_lower: np.ndarray, rest_pole: np.ndarray,
+                   d_upper: np.ndarray, d_lower: np.ndarray, hinge: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Global rotations (T,3,3) of a two-bone limb's bones from :func:`two_bone_ik`'s output.
+
+    Each bone's rest direction goes onto its solved direction, and the rest hinge axis (rest
+    bone × ``rest_pole``, the direction the middle joint bends towards in the rest pose) onto
+    the solved ``hinge``. The hinge is perpendicular to both bones whatever the pose, so the
+    twist about each bone is continuous from frame to frame. (Aligning the pole itself, made
+    perpendicular to the bone, flips the bone 180° about its axis whenever the pole passes
+    the bone's direction: a seated thigh points along a forward pole, an arm reaching down and
+    back can point along its back-and-down pole.)
+    """
+    out = []
+    for rest, d in ((rest_upper, d_upper), (rest_lower, d_lower)):
+        rest_hinge = normalize(np.cross(rest, rest_pole))
+        out.append(align(rest, np.cross(rest_hinge, rest), d, np.cross(hinge, d)))
+    return out[0], out[1]
+
+
 def local_from_global(global_rot: dict[int, np.ndarray], num_frames: int) -> np.ndarray:
     """SMPL local rotations (T,24,3,3) from global ones (missing joints inherit the parent's
     global rotation, i.e. get an identity local rotation)."""
@@ -65,8 +85,8 @@ def local_from_global(global_rot: dict[int, np.ndarray], num_frames: int) -> np.
     return local
 
 
-def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.ndarray,
+                   max_angle: float = np.pi) -> tuple[np.ndarray, np.ndarray]:
     """Move the child's twist about ``axis`` (the bone between them, rest frame) into the parent.
 
     The child's global rotation and the child joint's position are unchanged (the parent turns
@@ -79,5 +99,11 @@ def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.n
     twist = np.concatenate([q[..., :1], proj], axis=-1)
     norm = np.linalg.norm(twist, axis=-1, keepdims=True)
     twist = np.where(norm > 1e-9, twist / np.maximum(norm, 1e-12), [1.0, 0.0, 0.0, 0.0])
+    # at most ``max_angle`` of it (the parent's twist range); the rest stays in the child
+    angle = 2 * np.arctan2((twist[..., 1:] @ axis), twist[..., 0])
+    angle = (angle + np.pi) % (2 * np.pi) - np.pi
+    angle = np.clip(angle, -max_angle, max_angle)
+    twist = np.concatenate([np.cos(angle / 2)[..., None], np.sin(angle / 2)[..., None] * axis],
+                           axis=-1)
     t = quat_to_matrix(twist)
     return parent_local @ t, np.swapaxes(t, -1, -2) @ child_local

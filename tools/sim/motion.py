@@ -28,6 +28,7 @@ from couch.tools.sim.ik import (
     Skeleton,
     align,
     axis_rotation,
+    limb_rotations,
     local_from_global,
     normalize,
     transfer_twist,
@@ -693,13 +694,14 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             slide = smoothstep((free_w - 0.3) / 0.7)[:, None]
             ankle = ankle + slide * (over - ankle) * np.array([1.0, 0.0, 1.0]) + lift * (
                 over - ankle) * np.array([0.0, 1.0, 0.0])
-        knee, d_up, d_low = two_bone_ik(hip, ankle, pole, *body.leg)
+        knee, d_up, d_low, hinge = two_bone_ik(hip, ankle, pole, *body.leg)
         pos[J[f"{side}_knee"]] = knee
         rest_up = body.sk.rest[J[f"{side}_knee"]] - body.sk.rest[J[f"{side}_hip"]]
         rest_low = body.sk.rest[J[f"{side}_ankle"]] - body.sk.rest[J[f"{side}_knee"]]
-        z = np.array([0.0, 0.0, 1.0])
-        g[J[f"{side}_hip"]] = align(rest_up, z, d_up, pole)
-        g[J[f"{side}_knee"]] = align(rest_low, z, d_low, pole)
+        # twist from the knee's hinge axis, not the pole: seated, the thigh points along the
+        # forward pole and a pole-based frame spins the leg 180° about the thigh
+        g[J[f"{side}_hip"]], g[J[f"{side}_knee"]] = limb_rotations(
+            rest_up, rest_low, np.array([0.0, 0.0, 1.0]), d_up, d_low, hinge)
         g[J[f"{side}_ankle"]] = yaw_matrix(feet_head[foot])
         if side == "right" and free_w.any():  # a crossed leg's foot hangs off the shin
             g[J["right_ankle"]] = _blend_rot(g[J["right_ankle"]], g[J["right_knee"]]
@@ -743,7 +745,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             continue
         lateral = np.cross([0.0, 1.0, 0.0], forward) * sign
         pole = -forward * 0.8 + lateral * 0.45 - np.array([0, 0.3, 0])
-        _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+        _, d_up, d_low, hinge = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
         if side in contact_info:
             # Second pass: lay the palm along the forearm's direction on the surface, so the
             # wrist stays near neutral, then re-solve the arm for the moved wrist.
@@ -760,12 +762,13 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             wrist_c = plan["point"] + PALM_HOVER * nrm - rot_c @ body.palm_offset[side]
             wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None] + _hand_arc(c)
             hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
-            _, d_up, d_low = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+            _, d_up, d_low, hinge = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
         rest_up = body.sk.rest[el] - body.sk.rest[sh]
         rest_low = body.sk.rest[wr] - body.sk.rest[el]
-        back = np.array([0.0, 0.0, -1.0])
-        g_sh = align(rest_up, back, d_up, pole)
-        g_el = align(rest_low, back, d_low, pole)
+        # twist from the elbow's hinge axis: the pole is no fixed frame for an arm reaching
+        # down and back, where the bones pass along it (the forearm and hand flipped 180°)
+        g_sh, g_el = limb_rotations(rest_up, rest_low, np.array([0.0, 0.0, -1.0]), d_up, d_low,
+                                    hinge)
         ik_local = {
             sh: np.swapaxes(g[J[f"{side}_collar"]], -1, -2) @ g_sh,
             el: np.swapaxes(g_sh, -1, -2) @ g_el,
@@ -785,8 +788,11 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
 
     for side in ("left", "right"):
         el, wr = J[f"{side}_elbow"], J[f"{side}_wrist"]
+        # At most 95° of pronation goes into the forearm (the elbow's twist range is ±100°):
+        # a palm landing flat while the arm hangs steeply needs more wrist twist for a moment,
+        # and clamping a 150° forearm twist afterwards would swing the hand into the chair.
         local_proc[el], local_proc[wr] = transfer_twist(
-            local_proc[el], local_proc[wr], body.sk.offset(wr))
+            local_proc[el], local_proc[wr], body.sk.offset(wr), np.deg2rad(95))
     local = local_from_global(g, n)
     for j, loc in local_proc.items():
         local[:, j] = loc
