@@ -5,7 +5,7 @@ Simulator settings (sessions generated once per module): 4 cameras, seeds 3 and 
 noise, JPEG quality 90; depth noise with per-device biases), 720P colour.
 
 The board captures are the simulator's own ``calibration/<serial>.mkv``: each board pose is held
-between two neighbouring cameras, whole in both views (8 and 6 poses), so every pair of
+between two neighbouring cameras, whole in both views (10 and 6 poses), so every pair of
 neighbours shares views.
 """
 
@@ -35,7 +35,7 @@ from couch.tools.sim.session import SessionConfig, simulate_session
 
 SESSIONS = {
     "seed3": (SessionConfig(duration=1.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED",
-                            charuco_poses=8, seed=3), 8),
+                            charuco_poses=10, seed=3), 10),
     "seed5": (SessionConfig(duration=1.0, fps=5.0, cameras=4, depth_mode="NFOV_2X2BINNED",
                             charuco_poses=6, seed=5), 6),
 }
