@@ -12,15 +12,18 @@ motion and on it perturbed like an IMU (``imu_like_init``: 3 deg per bone and ax
 axis, white per frame), with the coarse body model.
 
 Measured when written (``pytest -s``, 19 sequences, 2850 frames), IMU-like motion / truth
-motion: contact F1 pelvis 0.992 / 0.995, left hand 0.63 / 0.77, right hand 0.53 / 0.81 (feet:
-2 truth frames in all, see the printout); label accuracy 0.991 / 0.991 (0.933 / 0.934 while
+motion: contact F1 pelvis 0.992 / 0.996, left hand 0.64 / 0.84, right hand 0.68 / 0.85 (feet:
+2 truth frames in all, see the printout); label accuracy 0.990 / 0.991 (0.933 / 0.934 while
 a touch anywhere in the episode counted as support: the left hand of right-hand sequences on
-armchairs brushes the armrest while the subject turns in front of the chair);
-median contact point error hands 1.2-1.3 / 1.0-1.2 cm, pelvis ~11.5 cm (the truth's point is its
-single nearest vertex's, which jumps between seat and backrest). The issue's contact F1 >= 0.95
-holds for the pelvis only: the truth's hand contacts are mostly 1-7 frame blips of fingertips
-passing within 2 cm, and an IMU-like fit moves a hand by ~3.5 cm per frame. Detection runs at
-~1000 frames/s on 2 cores (coarse body model).
+armchairs brushes the armrest while the subject turns in front of the chair); median contact
+point error hands 1.2-1.3 / 0.8-1.1 cm, pelvis ~12 cm (the truth's point is its single
+nearest vertex's, which jumps between seat and backrest). The issue's contact F1 >= 0.95
+holds for the pelvis only. The simulator's palms now mostly touch for their whole planned hold
+(about half a second on a seat while sitting down, longer on an armrest; they hovered 2.4 cm
+above it before the joint-limit clamp stopped turning the hand), so truth-motion hand F1 rose
+from 0.77-0.81; what remains is the holds' ends (one frame off at each end of a 7-frame hold is
+F1 0.875), brief touches of a hand passing the chair, and an IMU-like fit moving a hand by
+~3.5 cm per frame. Detection runs at ~700 frames/s on 2 cores (coarse body model).
 """
 
 from __future__ import annotations
@@ -318,5 +321,5 @@ def test_accuracy_against_simulator_truth(motions, noisy):
     assert r["parts"]["pelvis"][2] >= 0.95
     assert r["labels"] >= 0.9
     for hand in ("left_hand", "right_hand"):
-        assert r["parts"][hand][2] >= (0.7 if not noisy else 0.5)
+        assert r["parts"][hand][2] >= (0.8 if not noisy else 0.6)
         assert r["point"][hand] <= 0.02
