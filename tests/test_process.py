@@ -128,7 +128,7 @@ def test_end_to_end_accuracy_against_the_simulator(run, truth):
 #: More sessions end to end: other subjects, chairs, noise and frame rates (depth only), with
 #: the label accuracy each must reach. On the armchair the left hand brushes its armrest while
 #: the subject turns in front of it and rises: not support (0.47 before contacts counted only
-#: from ``ContactConfig.support_before`` s before the pelvis lands; 0.992 since).
+#: from ``ContactConfig.support_before`` s before the pelvis lands; 0.99-1.00 since).
 SESSIONS = {
     "armchair": (dict(seed=5, chair="armchair", noise=1.5, interaction="right_hand", fps=15.0,
                       duration=8.0, drop_rate=0.03), 0.9),
