@@ -15,12 +15,14 @@ COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
    against samples of the scan with FPFH features + RANSAC (open3d, seeded through
    ``o3d.utility.random.seed``, several seeds), each result refined by point-to-plane ICP.
    RANSAC alone is 5-30 cm off and a symmetric shape (a stool) fits several ways, so every
-   candidate is refined and the best ICP fitness wins; candidates that fit as well with a
-   rotation more than ``ambiguity_deg`` away are reported as an ambiguity.
+   candidate is refined (screened at a coarse voxel first, the best few distinct ones at full
+   resolution) and the best ICP fitness wins; candidates that fit as well with a rotation
+   more than ``ambiguity_deg`` away are reported as an ambiguity.
 3. **per-frame ICP** (:func:`track_frame`) — every frame's points within ``crop_margin`` of the
-   current pose (cloud → scan surface, point-to-plane, Tukey kernel, coarse to fine). A frame
-   is rejected with its reason: too few points (the person in front of the chair), low fitness
-   (share of those points within ``inlier_distance`` of the surface), high RMSE. A frame whose
+   current pose (cloud → scan surface, point-to-plane, Tukey kernel; the finest stage alone,
+   then coarse to fine if that is not good enough). A frame is rejected with its reason: too
+   few points (the person in front of the chair), low fitness (share of those points within
+   ``inlier_distance`` of the surface), high RMSE. A frame whose
    ICP fails but which has points is registered globally again: a chair that moved is found.
 4. **segments and averaging** (:func:`pose_segments`, :func:`average_poses`) — the accepted poses
    in time order are split where the pose jumps by more than ``move_mm`` / ``move_deg`` and stays
@@ -114,8 +116,18 @@ class ChairConfig:
         ransac_seeds: RANSAC runs (seeds ``seed`` ...) per object.
         ransac_iterations, ransac_confidence: RANSAC convergence.
         seed: base seed of the scan sampling and RANSAC.
-        icp_distances: ICP max correspondence distances, coarse to fine.
+        icp_distances: ICP max correspondence distances, coarse to fine. Tracking a static
+            chair from the previous frame's pose runs the finest stage alone first (it starts
+            within millimetres) and the whole ladder only when that is not good.
         icp_iterations: per stage.
+        icp_max_points: ICP moves at most this many of a frame's cropped points (a seeded
+            random subset; the fitness and RMSE still count every point): a sofa seen by four
+            cameras gives ~40k, and their nearest-neighbour searches were the ICP's time.
+        screen_voxel: global candidates (RANSAC's, the turned and shifted starts) are first
+            run through the coarsest ICP stage on the frame and the scan downsampled to this
+            voxel (m) and ranked by their fitness against the exact surface; only the best
+            ``refine_top`` distinct ones get the full-resolution ICP. 0: refine every one.
+        refine_top: see ``screen_voxel``; enough for every turn of a symmetric stool.
         shift_search: the best global candidate is also refined from starts moved this far
             (m) along each of the scan's axes, both ways (ICP's basin is narrower than a
             repeated part's spacing); (): no search.
@@ -153,6 +165,9 @@ class ChairConfig:
     seed: int = 0
     icp_distances: tuple[float, ...] = (0.05, 0.02, 0.008)
     icp_iterations: int = 30
+    icp_max_points: int = 10000
+    screen_voxel: float = 0.02
+    refine_top: int = 6
     shift_search: tuple[float, ...] = (0.04, 0.08)
     crop_margin: float = 0.05
     inlier_distance: float = 0.008
@@ -205,11 +220,6 @@ class ChairScan:
         bounding box's centre in the scan's arbitrary frame)."""
         return self.samples.mean(0)
 
-    @property
-    def radius(self) -> float:
-        """Largest distance (m) of a vertex from :attr:`centre`."""
-        return float(np.linalg.norm(self.vertices - self.centre, axis=1).max())
-
     def scene(self) -> o3d.t.geometry.RaycastingScene:
         """A ray-casting scene of the mesh (scan frame) for exact point-to-surface distances."""
         scene = o3d.t.geometry.RaycastingScene()
@@ -217,10 +227,14 @@ class ChairScan:
                             o3d.core.Tensor(self.faces.astype(np.uint32)))
         return scene
 
-    def target(self) -> o3d.geometry.PointCloud:
-        """The samples with normals as an open3d cloud (the ICP target, scan frame)."""
+    def target(self, voxel: float = 0.0) -> o3d.geometry.PointCloud:
+        """The samples with normals as an open3d cloud (the ICP target, scan frame); with
+        ``voxel`` > 0 downsampled to that voxel (m; normals averaged per voxel)."""
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.samples))
         pcd.normals = o3d.utility.Vector3dVector(self.normals)
+        if voxel > 0:
+            pcd = pcd.voxel_down_sample(voxel)
+            pcd.normalize_normals()
         return pcd
 
 
@@ -493,10 +507,10 @@ def _evaluate(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.Raycast
               world_from_object: np.ndarray, margin: float, inlier: float
               ) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool points within ``margin`` of the posed scan and (M,) their exact distances
-    (m) to its surface. A bounding-sphere test first spares the ray-casting most of the room."""
+    (m) to its surface. A bounding-box test (scan frame) first spares the ray-casting the room."""
     local = apply_transform(invert_transform(world_from_object), points)
-    radius = scan.radius + margin
-    near = np.linalg.norm(local - scan.centre, axis=1) < radius
+    near = np.all((local >= scan.vertices.min(0) - margin)
+                  & (local <= scan.vertices.max(0) + margin), axis=1)
     d = np.full(len(points), np.inf)
     if near.any():
         d[near] = scene.compute_distance(
@@ -508,7 +522,8 @@ def _evaluate(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.Raycast
 def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
                 config: ChairConfig | None = None,
                 scene: o3d.t.geometry.RaycastingScene | None = None,
-                target: o3d.geometry.PointCloud | None = None) -> FrameResult:
+                target: o3d.geometry.PointCloud | None = None,
+                stages: Sequence[float] | None = None) -> FrameResult:
     """Point-to-plane ICP of one frame's chair points onto the scan, from pose ``init``.
 
     The frame's points near the posed scan (``crop_margin``, re-cropped at every stage) go to
@@ -518,6 +533,8 @@ def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
     Args:
         cloud: the frame (world). scan: the chair. init: (4,4) world_from_object to start at.
         scene, target: ``scan.scene()`` / ``scan.target()`` when the caller has them.
+        stages: ICP max correspondence distances (m), coarse to fine (default
+            ``config.icp_distances``).
 
     Returns:
         :class:`FrameResult` (``pose`` None when too few points were near).
@@ -527,12 +544,16 @@ def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
     target = target or scan.target()
     pts = np.asarray(cloud.points, np.float64)
     pose = np.asarray(init, np.float64)
-    margin = max(cfg.crop_margin, cfg.icp_distances[0])
-    for dist in cfg.icp_distances:
+    stages = cfg.icp_distances if stages is None else tuple(stages)
+    margin = max(cfg.crop_margin, stages[0])
+    for dist in stages:
         crop, _ = _evaluate(pts, scan, scene, pose, margin, cfg.inlier_distance)
         if crop.sum() < max(cfg.min_points // 3, 10):
             return FrameResult(None, 0.0, np.inf, int(crop.sum()))
-        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[crop]))
+        idx = np.flatnonzero(crop)
+        if len(idx) > cfg.icp_max_points:
+            idx = np.random.default_rng(cfg.seed).choice(idx, cfg.icp_max_points, replace=False)
+        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[idx]))
         est = o3d.pipelines.registration.TransformationEstimationPointToPlane(
             o3d.pipelines.registration.TukeyLoss(k=dist))
         res = o3d.pipelines.registration.registration_icp(
@@ -586,11 +607,54 @@ def _fpfh(pcd: o3d.geometry.PointCloud, voxel: float
     return down, feat
 
 
+def _ranked(found: list[FrameResult]) -> list[FrameResult]:
+    return sorted(found, key=lambda r: (-round(r.fitness, 3), r.rmse))
+
+
+def _refined(cloud: FusedCloud, scan: ChairScan, inits: Sequence[np.ndarray], cfg: ChairConfig,
+             scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud,
+             coarse: o3d.geometry.PointCloud | None = None) -> list[FrameResult]:
+    """ICP of the scan from every (4,4) start in ``inits``, best first (``method`` global).
+
+    With ``screen_voxel``, the starts are screened on a downsampled copy of the frame against
+    ``coarse`` (the scan's target at that voxel) through the coarsest stage, and the best
+    ``refine_top`` distinct screened poses (over 1 cm or 1 deg apart) are refined at full
+    resolution from there: the full ICP of every RANSAC run and turned or shifted start
+    was most of the registration's time, and most of them land on the same few poses."""
+    if not inits:
+        return []
+    screen = cfg.screen_voxel > 0 and len(cfg.icp_distances) > 1
+    if not screen:
+        starts = list(inits)
+    else:
+        coarse = coarse if coarse is not None else scan.target(cfg.screen_voxel)
+        down = cloud.to_open3d().voxel_down_sample(cfg.screen_voxel)
+        small = FusedCloud(np.asarray(down.points, np.float32),
+                           np.asarray(down.normals, np.float32),
+                           np.zeros(len(down.points), np.int8), cloud.time)
+        screened = _ranked([r for r in (track_frame(small, scan, p, cfg, scene, coarse,
+                                                    cfg.icp_distances[:1]) for p in inits)
+                            if r.pose is not None])
+        starts = []
+        for r in screened:
+            if len(starts) == cfg.refine_top:
+                break
+            if all(not _near(r.pose, q, scan.centre, 0.01, 1.0) for q in starts):
+                starts.append(r.pose)
+    stages = cfg.icp_distances[1:] if screen else cfg.icp_distances
+    found = [track_frame(cloud, scan, p, cfg, scene, target, stages) for p in starts]
+    return _ranked([dataclasses.replace(r, method="global") for r in found if r.pose is not None])
+
+
 def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | None = None,
                       scene: o3d.t.geometry.RaycastingScene | None = None,
-                      target: o3d.geometry.PointCloud | None = None
+                      target: o3d.geometry.PointCloud | None = None,
+                      coarse: o3d.geometry.PointCloud | None = None
                       ) -> tuple[list[FrameResult], float]:
     """Global registrations of the scan in one frame, best first (see the module doc, step 2).
+
+    Args:
+        coarse: ``scan.target(config.screen_voxel)`` when the caller has it.
 
     Returns:
         (candidates refined by ICP, sorted by fitness then RMSE; the extent (m) of the largest
@@ -604,7 +668,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     src.normals = o3d.utility.Vector3dVector(scan.normals)
     src_down, src_feat = _fpfh(src, cfg.voxel)
     reg = o3d.pipelines.registration
-    found: list[FrameResult] = []
+    inits: list[np.ndarray] = []
     for idx in objects:
         part = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
             cloud.points[idx].astype(np.float64)))
@@ -621,22 +685,14 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
                 [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
                  reg.CorrespondenceCheckerBasedOnDistance(1.5 * cfg.voxel)],
                 reg.RANSACConvergenceCriteria(cfg.ransac_iterations, cfg.ransac_confidence))
-            if res.fitness <= 0:
-                continue
-            r = track_frame(cloud, scan, np.asarray(res.transformation), cfg, scene, target)
-            if r.pose is not None:
-                found.append(dataclasses.replace(r, method="global"))
-    found.sort(key=lambda r: (-round(r.fitness, 3), r.rmse))
-    return found, largest
+            if res.fitness > 0:
+                inits.append(np.asarray(res.transformation))
+    return _refined(cloud, scan, inits, cfg, scene, target, coarse), largest
 
 
-def _turned(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairConfig,
-            scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud
-            ) -> list[FrameResult]:
-    """ICP from ``start`` turned about each principal axis of the scan (through its centre)
+def _turned(scan: ChairScan, start: np.ndarray) -> list[np.ndarray]:
+    """(4,4) pose ``start`` turned about each principal axis of the scan (through its centre)
     by the first turns of 2-, 3-, 4- and 5-fold symmetries."""
-    if start.pose is None:
-        return []
     c = scan.centre
     _, axes = np.linalg.eigh(np.cov((scan.samples - c).T))
     out = []
@@ -645,20 +701,14 @@ def _turned(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairCo
             rot = Rotation.from_rotvec(np.radians(deg) * axis).as_matrix()
             turn = np.eye(4)
             turn[:3, :3], turn[:3, 3] = rot, c - rot @ c
-            r = track_frame(cloud, scan, start.pose @ turn, cfg, scene, target)
-            if r.pose is not None:
-                out.append(dataclasses.replace(r, method="global"))
+            out.append(start @ turn)
     return out
 
 
-def _shifted(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairConfig,
-             scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud
-             ) -> list[FrameResult]:
-    """ICP from ``start`` moved by ``shift_search`` along each of the scan's principal axes,
+def _shifted(scan: ChairScan, start: np.ndarray, cfg: ChairConfig) -> list[np.ndarray]:
+    """(4,4) pose ``start`` moved by ``shift_search`` along each of the scan's principal axes,
     both ways: a chair made of repeated parts (an armrest like the seat's edge, a row of
     slats) holds ICP a few centimetres off, beyond its coarsest correspondence distance."""
-    if start.pose is None or not cfg.shift_search:
-        return []
     _, axes = np.linalg.eigh(np.cov((scan.samples - scan.centre).T))
     out = []
     for axis in axes.T:
@@ -666,9 +716,7 @@ def _shifted(cloud: FusedCloud, scan: ChairScan, start: FrameResult, cfg: ChairC
             for sign in (-1.0, 1.0):
                 move = np.eye(4)
                 move[:3, 3] = sign * step * axis
-                r = track_frame(cloud, scan, start.pose @ move, cfg, scene, target)
-                if r.pose is not None:
-                    out.append(dataclasses.replace(r, method="global"))
+                out.append(start @ move)
     return out
 
 
@@ -677,12 +725,16 @@ def _good(r: FrameResult, cfg: ChairConfig) -> bool:
             and r.rmse <= cfg.max_rmse)
 
 
-def _close(a: np.ndarray, b: np.ndarray, cfg: ChairConfig, centre: np.ndarray) -> bool:
-    """Poses within the move thresholds, the translation measured at the object's centre (a
+def _near(a: np.ndarray, b: np.ndarray, centre: np.ndarray, metres: float, deg: float) -> bool:
+    """Poses within ``metres`` and ``deg``, the translation measured at the object's centre (a
     rotation about a far origin is not a move of the chair)."""
     ca, cb = apply_transform(a, centre[None])[0], apply_transform(b, centre[None])[0]
-    return bool(np.linalg.norm(ca - cb) * 1e3 <= cfg.move_mm
-                and rotation_angle_deg(a, b) <= cfg.move_deg)
+    return bool(np.linalg.norm(ca - cb) <= metres and rotation_angle_deg(a, b) <= deg)
+
+
+def _close(a: np.ndarray, b: np.ndarray, cfg: ChairConfig, centre: np.ndarray) -> bool:
+    """Poses within the move thresholds (``move_mm``, ``move_deg``)."""
+    return _near(a, b, centre, cfg.move_mm * 1e-3, cfg.move_deg)
 
 
 def average_poses(poses: np.ndarray, config: ChairConfig | None = None,
@@ -897,12 +949,13 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     if not n or not counts.any():
         raise ChairRegistrationError(f"{where}: no points that could be the chair in any frame")
     scene, target = scan.scene(), scan.target()
+    coarse = scan.target(cfg.screen_voxel) if cfg.screen_voxel > 0 else None
     sec["scan"] = wallclock.perf_counter() - t0
 
     # global registration on the frame that sees the most
     t0 = wallclock.perf_counter()
     best = int(np.argmax(counts))
-    cands, largest = global_candidates(cl[best], scan, cfg, scene, target)
+    cands, largest = global_candidates(cl[best], scan, cfg, scene, target, coarse)
     if not cands:
         raise ChairRegistrationError(
             f"{scan.name}: no object in {where} (frame {int(frames[best])}) has the scan's size "
@@ -910,9 +963,9 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
             f"{largest:.3g} m across): is the scan in metres and of this chair?")
     # a symmetric chair (a stool) fits turned about one of its axes as well, and RANSAC's
     # runs need not find those turns: try them from the best candidate, keep the best ICP
-    cands = sorted(cands + _turned(cl[best], scan, cands[0], cfg, scene, target)
-                   + _shifted(cl[best], scan, cands[0], cfg, scene, target),
-                   key=lambda r: (-round(r.fitness, 3), r.rmse))
+    cands = _ranked(cands + _refined(
+        cl[best], scan, _turned(scan, cands[0].pose) + _shifted(scan, cands[0].pose, cfg), cfg,
+        scene, target, coarse))
     top = cands[0]
     if not _good(top, cfg):
         raise ChairRegistrationError(
@@ -930,9 +983,12 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     results: list[FrameResult] = []
     pose = top.pose
     for i in tqdm(range(n), desc="chair ICP", unit="frame", disable=not progress):
-        r = track_frame(cl[i], scan, pose, cfg, scene, target)
+        # a static chair: the last pose is within millimetres, the finest stage is enough
+        r = track_frame(cl[i], scan, pose, cfg, scene, target, cfg.icp_distances[-1:])
+        if not _good(r, cfg):
+            r = track_frame(cl[i], scan, pose, cfg, scene, target)
         if not _good(r, cfg) and counts[i] >= cfg.min_points and i != best:
-            again, _ = global_candidates(cl[i], scan, cfg, scene, target)
+            again, _ = global_candidates(cl[i], scan, cfg, scene, target, coarse)
             if again and _good(again[0], cfg) and again[0].fitness > r.fitness:
                 r = again[0]
         if i == best and not _good(r, cfg):
