@@ -528,9 +528,9 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
     # facing a camera that has the vertex in its image
     facing = np.zeros(verts.shape[:2], bool)
     for view in views:
-        to_cam = view.centre - verts
-        facing |= ((to_cam * normals).sum(-1) > 0) & view.in_view(
-            verts.reshape(-1, 3)).reshape(verts.shape[:2])
+        # projecting is the cost: only vertices facing this camera and not yet seen by another
+        todo = (((view.centre - verts) * normals).sum(-1) > 0) & ~facing
+        facing[todo] = view.in_view(verts[todo])
     ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
     frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
     frame_w[np.asarray(fallback, bool)] = 0.0
