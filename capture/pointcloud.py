@@ -44,6 +44,10 @@ class CloudConfig:
     normal_window: int = 5  # pixels: the neighbourhood of each point's plane fit (odd)
     outlier_distance: float = 0.01  # a point this far from its plane fit is dropped; 0 = keep
     min_points: int = 10  # a camera contributing fewer points than this is left out
+    # measure each camera's systematic depth error on the floor of a few frames and take it out
+    # of its depth before the points are made (couch.capture.depth_bias); False: as recorded
+    depth_bias: bool = True
+    bias_frames: int = 5
 
 
 @dataclasses.dataclass

@@ -9,11 +9,19 @@ COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
    *except* the person (the segmentation's person mask, grown by a few pixels), the floor
    (y <= ``floor_tolerance``) and depth edges (flying pixels), fused over cameras per frame
    (:func:`couch.capture.pointcloud.fuse_clouds`). The room's clutter stays in; the
-   registration picks the chair out of it by shape.
+   registration picks the chair out of it by shape. Each camera's systematic depth error
+   (offset, scale, radial: a few millimetres on an Azure Kinect) is measured on the floor it
+   sees and taken out of its depth first (:mod:`couch.capture.depth_bias`): the cameras disagreeing
+   by a few millimetres on the chair pulled its pose 5 mm off on a simulated armchair.
 2. **global registration** (:func:`global_candidates`) — the frame with the most points is cut
    into objects (DBSCAN on a coarse copy); every object whose extent fits the scan's is matched
    against samples of the scan with FPFH features + RANSAC (open3d, seeded through
    ``o3d.utility.random.seed``, several seeds), each result refined by point-to-plane ICP.
+   The chair stands on the floor (y = 0 of a levelled calibration), so every object also gets
+   starts with the scan in each of its stable resting poses (``trimesh.poses.
+   compute_stable_poses``) as tall as the object, turned about the vertical in ``yaw_step``
+   steps, on the floor at the object's centre: on a near-symmetric armchair RANSAC's four runs
+   all fitted it tilted.
    RANSAC alone is 5-30 cm off and a symmetric shape (a stool) fits several ways, so every
    candidate is refined (screened at a coarse voxel first, the best few distinct ones at full
    resolution) and the best ICP fitness wins; candidates that fit as well with a rotation
@@ -50,11 +58,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import open3d as o3d
+import trimesh
 from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics
+from couch.capture.depth_bias import DepthBias, recording_depth_bias
 from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
 from couch.capture.segmentation import (
     CameraSegmentation,
@@ -102,6 +112,7 @@ class ChairConfig:
     Attributes:
         person_dilate_px: the person mask is grown by this many pixels before its complement
             may be chair (its rim is mixed depth and half-person).
+
         edge_ratio: drop depth-edge pixels (see :func:`~couch.capture.segmentation.
             depth_edges`) with this ratio; None: keep them. Both sides of every edge is all
             of a thin leg or stretcher at binned resolution (it took the chair's legs out of
@@ -128,6 +139,10 @@ class ChairConfig:
             voxel (m) and ranked by their fitness against the exact surface; only the best
             ``refine_top`` distinct ones get the full-resolution ICP. 0: refine every one.
         refine_top: see ``screen_voxel``; enough for every turn of a symmetric stool.
+        yaw_step: degrees between the floor starts' turns about the vertical (0: no floor
+            starts, for clouds whose world is not levelled on the floor).
+        rest_height: a resting pose is a floor start for an object when its height is within
+            this (m) of the object's top (see ``_floor_starts``).
         shift_search: the best global candidate is also refined from starts moved this far
             (m) along each of the scan's axes, both ways (ICP's basin is narrower than a
             repeated part's spacing); (): no search.
@@ -168,6 +183,8 @@ class ChairConfig:
     icp_max_points: int = 10000
     screen_voxel: float = 0.02
     refine_top: int = 6
+    yaw_step: float = 30.0
+    rest_height: float = 0.05
     shift_search: tuple[float, ...] = (0.04, 0.08)
     crop_margin: float = 0.05
     inlier_distance: float = 0.008
@@ -226,6 +243,17 @@ class ChairScan:
         scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
                             o3d.core.Tensor(self.faces.astype(np.uint32)))
         return scene
+
+    def resting_rotations(self) -> np.ndarray:
+        """(K,3,3) rotations (scan → world, Y up) of the scan's stable resting poses on a
+        plane, most probable first (``trimesh.poses.compute_stable_poses`` about the area
+        centroid; a chair's upright pose need not be the most probable)."""
+        mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
+        # its probabilities (unused) take square roots of rounding-negative numbers
+        with np.errstate(invalid="ignore"):
+            poses, _ = trimesh.poses.compute_stable_poses(mesh, center_mass=self.centre)
+        z_to_y = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # trimesh rests on z = 0
+        return np.einsum("ij,njk->nik", z_to_y, np.asarray(poses)[:, :3, :3])
 
     def target(self, voxel: float = 0.0) -> o3d.geometry.PointCloud:
         """The samples with normals as an open3d cloud (the ICP target, scan frame); with
@@ -349,6 +377,7 @@ class ChairClouds:
             counts as seen when some frame measured no nearer than it (:func:`register_chair`'s
             chamfer).
         warnings: skipped captures per camera.
+        depth_bias: per camera, the depth error taken out of its depth (None: not measured).
     """
 
     session: Path
@@ -357,15 +386,17 @@ class ChairClouds:
     clouds: list[FusedCloud]
     views: list[CameraView]
     warnings: list[str]
+    depth_bias: list[DepthBias | None] = dataclasses.field(default_factory=list)
 
 
 def scene_mask(frame: FrameSegmentation, segmentation: CameraSegmentation,
-               config: ChairConfig | None = None) -> np.ndarray:
+               config: ChairConfig | None = None, depth: np.ndarray | None = None
+               ) -> np.ndarray:
     """(H,W) bool: depth pixels of one frame that may be the chair — valid depth, not the
     (grown) person, above the floor (world y > ``floor_tolerance``), optionally not a depth
-    edge (``edge_ratio``)."""
+    edge (``edge_ratio``). ``depth``: the frame's depth corrected (default: as recorded)."""
     cfg = config or ChairConfig()
-    depth = frame.depth_mm
+    depth = frame.depth_mm if depth is None else depth
     k = 2 * cfg.person_dilate_px + 1
     person = cv2.dilate(frame.person.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
     mask = (depth > 0) & ~person
@@ -435,6 +466,13 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
             warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
                             f"depth skipped")
         segs.append(seg)
+    cloud_cfg = cloud or CloudConfig()
+    biases = [recording_depth_bias(seg, cloud_cfg.bias_frames, cfg.person_dilate_px)
+              if cloud_cfg.depth_bias else None for seg in segs]
+    warnings += [f"camera {serial}: too little floor in view to measure its depth error; its "
+                 f"depth is used as recorded"
+                 for serial, b in zip(serials, biases, strict=True)
+                 if cloud_cfg.depth_bias and b is None]
     if kinect is not None:
         stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
         by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
@@ -455,10 +493,12 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                 f = (stamps[c].get(int(by_serial[serials[c]][k])) if k >= 0 else None)
             else:
                 f = seg.frames[int(r)]
-            depths.append(None if f is None else f.depth_mm)
-            masks.append(None if f is None else scene_mask(f, seg, cfg))
-            if f is not None:
-                np.maximum(far[c], f.depth_mm, out=far[c])
+            depth = (None if f is None else f.depth_mm if biases[c] is None
+                     else biases[c].correct(f.depth_mm, seg.calibration))
+            depths.append(depth)
+            masks.append(None if f is None else scene_mask(f, seg, cfg, depth))
+            if depth is not None:
+                np.maximum(far[c], depth, out=far[c])
         t = (float(kinect.time[r]) if kinect is not None  # type: ignore[attr-defined]
              else segs[0].frames[int(r)].timestamp_us * 1e-6)
         times.append(t)
@@ -471,7 +511,7 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                         fd.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
                         depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
                         max_incidence_deg=80.0) for s, fd in zip(segs, far, strict=True)]
-    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings)
+    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings, biases)
 
 
 # --------------------------------------------------------------------------- registration
@@ -611,32 +651,38 @@ def _ranked(found: list[FrameResult]) -> list[FrameResult]:
     return sorted(found, key=lambda r: (-round(r.fitness, 3), r.rmse))
 
 
-def _refined(cloud: FusedCloud, scan: ChairScan, inits: Sequence[np.ndarray], cfg: ChairConfig,
+def _refined(cloud: FusedCloud, scan: ChairScan,
+             groups: Sequence[tuple[np.ndarray | None, Sequence[np.ndarray]]], cfg: ChairConfig,
              scene: o3d.t.geometry.RaycastingScene, target: o3d.geometry.PointCloud,
              coarse: o3d.geometry.PointCloud | None = None) -> list[FrameResult]:
-    """ICP of the scan from every (4,4) start in ``inits``, best first (``method`` global).
+    """ICP of the scan from (4,4) starts, best first (``method`` global).
 
-    With ``screen_voxel``, the starts are screened on a downsampled copy of the frame against
-    ``coarse`` (the scan's target at that voxel) through the coarsest stage, and the best
-    ``refine_top`` distinct screened poses (over 1 cm or 1 deg apart) are refined at full
-    resolution from there: the full ICP of every RANSAC run and turned or shifted start
-    was most of the registration's time, and most of them land on the same few poses."""
-    if not inits:
-        return []
+    ``groups``: (indices of the frame's points the starts are about, e.g. one object's; None:
+    all, and the starts) pairs. With ``screen_voxel``, every start is screened through the
+    coarsest stage on its group's points downsampled to that voxel against ``coarse`` (the
+    scan's target at twice that voxel), and the best ``refine_top`` distinct screened poses (over
+    1 cm or 1 deg apart) are refined on the whole frame at full resolution from there: the
+    full ICP of every start was most of the registration's time, and most of them land on the
+    same few poses. Without it every start gets the full ICP."""
     screen = cfg.screen_voxel > 0 and len(cfg.icp_distances) > 1
     if not screen:
-        starts = list(inits)
+        starts = [p for _, inits in groups for p in inits]
     else:
-        coarse = coarse if coarse is not None else scan.target(cfg.screen_voxel)
-        down = cloud.to_open3d().voxel_down_sample(cfg.screen_voxel)
-        small = FusedCloud(np.asarray(down.points, np.float32),
-                           np.asarray(down.normals, np.float32),
-                           np.zeros(len(down.points), np.int8), cloud.time)
-        screened = _ranked([r for r in (track_frame(small, scan, p, cfg, scene, coarse,
-                                                    cfg.icp_distances[:1]) for p in inits)
-                            if r.pose is not None])
+        coarse = coarse if coarse is not None else scan.target(2 * cfg.screen_voxel)
+        screened = []
+        for idx, inits in groups:
+            if not len(inits):
+                continue
+            pcd = cloud.to_open3d() if idx is None else o3d.geometry.PointCloud(
+                o3d.utility.Vector3dVector(cloud.points[idx].astype(np.float64)))
+            down = np.asarray(pcd.voxel_down_sample(cfg.screen_voxel).points, np.float32)
+            small = FusedCloud(down, np.zeros_like(down), np.zeros(len(down), np.int8),
+                               cloud.time)
+            screened += [r for r in (track_frame(small, scan, p, cfg, scene, coarse,
+                                                 cfg.icp_distances[:1]) for p in inits)
+                         if r.pose is not None]
         starts = []
-        for r in screened:
+        for r in _ranked(screened):
             if len(starts) == cfg.refine_top:
                 break
             if all(not _near(r.pose, q, scan.centre, 0.01, 1.0) for q in starts):
@@ -654,7 +700,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     """Global registrations of the scan in one frame, best first (see the module doc, step 2).
 
     Args:
-        coarse: ``scan.target(config.screen_voxel)`` when the caller has it.
+        coarse: ``scan.target(2 * config.screen_voxel)`` when the caller has it.
 
     Returns:
         (candidates refined by ICP, sorted by fitness then RMSE; the extent (m) of the largest
@@ -668,7 +714,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     src.normals = o3d.utility.Vector3dVector(scan.normals)
     src_down, src_feat = _fpfh(src, cfg.voxel)
     reg = o3d.pipelines.registration
-    inits: list[np.ndarray] = []
+    groups: list[tuple[np.ndarray | None, list[np.ndarray]]] = []
     for idx in objects:
         part = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
             cloud.points[idx].astype(np.float64)))
@@ -676,6 +722,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
         tgt_down, tgt_feat = _fpfh(part, cfg.voxel)
         if len(tgt_down.points) < 10:
             continue
+        inits = _floor_starts(scan, cloud.points[idx], cfg)
         for k in range(cfg.ransac_seeds):
             # open3d's RANSAC draws from its own global generator: seed it per run
             o3d.utility.random.seed(cfg.seed + k)
@@ -687,7 +734,33 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
                 reg.RANSACConvergenceCriteria(cfg.ransac_iterations, cfg.ransac_confidence))
             if res.fitness > 0:
                 inits.append(np.asarray(res.transformation))
-    return _refined(cloud, scan, inits, cfg, scene, target, coarse), largest
+        groups.append((idx, inits))
+    return _refined(cloud, scan, groups, cfg, scene, target, coarse), largest
+
+
+def _floor_starts(scan: ChairScan, points: np.ndarray, cfg: ChairConfig) -> list[np.ndarray]:
+    """(4,4) poses of the scan resting on the floor (y = 0) in each stable pose as tall as the
+    object's ``points`` (N,3) (their top within ``rest_height`` below or twice that above the
+    pose's: flying pixels may rise over the chair, an occluder may hide its top), turned about
+    the vertical by multiples of ``yaw_step``, its bounding box centred (x, z) on theirs."""
+    if cfg.yaw_step <= 0 or not len(points):
+        return []
+    mid = (points.max(0) + points.min(0)) / 2
+    top = float(points[:, 1].max())
+    out = []
+    for rest in scan.resting_rotations():
+        height = np.ptp(scan.vertices @ rest[1])
+        if not top - cfg.rest_height <= height <= top + 2 * cfg.rest_height:
+            continue
+        for yaw in np.arange(0.0, 360.0, cfg.yaw_step):
+            rot = Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ rest
+            v = scan.vertices @ rot.T
+            pose = np.eye(4)
+            pose[:3, :3] = rot
+            pose[:3, 3] = (mid[0] - (v[:, 0].max() + v[:, 0].min()) / 2, -v[:, 1].min(),
+                           mid[2] - (v[:, 2].max() + v[:, 2].min()) / 2)
+            out.append(pose)
+    return out
 
 
 def _turned(scan: ChairScan, start: np.ndarray) -> list[np.ndarray]:
@@ -949,7 +1022,7 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     if not n or not counts.any():
         raise ChairRegistrationError(f"{where}: no points that could be the chair in any frame")
     scene, target = scan.scene(), scan.target()
-    coarse = scan.target(cfg.screen_voxel) if cfg.screen_voxel > 0 else None
+    coarse = scan.target(2 * cfg.screen_voxel) if cfg.screen_voxel > 0 else None
     sec["scan"] = wallclock.perf_counter() - t0
 
     # global registration on the frame that sees the most
@@ -964,8 +1037,9 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     # a symmetric chair (a stool) fits turned about one of its axes as well, and RANSAC's
     # runs need not find those turns: try them from the best candidate, keep the best ICP
     cands = _ranked(cands + _refined(
-        cl[best], scan, _turned(scan, cands[0].pose) + _shifted(scan, cands[0].pose, cfg), cfg,
-        scene, target, coarse))
+        cl[best], scan, [(None, _turned(scan, cands[0].pose) + _shifted(scan, cands[0].pose,
+                                                                         cfg))],
+        cfg, scene, target, coarse))
     top = cands[0]
     if not _good(top, cfg):
         raise ChairRegistrationError(
