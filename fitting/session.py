@@ -51,6 +51,7 @@ from tqdm.auto import tqdm
 from couch.body import BodyModel
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
+from couch.capture.depth_bias import recording_depth_bias
 from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
 from couch.capture.segmentation import (
     ChairModel,
@@ -353,9 +354,11 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
     """Person clouds at rows of the frame table.
 
     Every camera's recording is segmented once (background from its empty-room recording when
-    the session has one, else its calibration capture and its own frames), then each row's
-    frames are fused. A camera's frame is found by its timestamp (the frame table indexes each
-    camera's frame list, ``tracks[c].timestamp_us``).
+    the session has one, else its calibration capture and its own frames), its systematic depth
+    error measured on the floor and taken out (``cloud.depth_bias``,
+    :mod:`couch.capture.depth_bias`), then each row's frames are fused. A camera's frame is
+    found by its timestamp (the frame table indexes each camera's frame list,
+    ``tracks[c].timestamp_us``).
 
     Args:
         session_dir: the session.
@@ -369,9 +372,10 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
 
     Returns:
         (T clouds, the C cameras' :class:`~couch.fitting.metrics.CameraView` s (world),
-        warnings: skipped captures per camera).
+        warnings: skipped captures per camera, cameras whose depth error was not measured).
     """
     files = session_files(session_dir)
+    cloud = cloud or CloudConfig()
     segs, poses, warnings = [], [], []
     for serial in tqdm(kinect.serials, desc="segmentation", unit="camera", disable=not progress):
         cam = files.camera(serial)
@@ -390,6 +394,12 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                             f"depth skipped")
         segs.append(seg)
         poses.append(pose)
+    biases = [recording_depth_bias(s, cloud.bias_frames) if cloud.depth_bias else None
+              for s in segs]
+    warnings += [f"camera {serial}: too little floor in view to measure its depth error; its "
+                 f"depth is used as recorded"
+                 for serial, b in zip(kinect.serials, biases, strict=True)
+                 if cloud.depth_bias and b is None]
     stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
     by_serial = {t.serial: t.timestamp_us for t in tracks}
     track_stamps = [by_serial[s] for s in kinect.serials]
@@ -399,7 +409,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         for c in range(len(segs)):
             k = int(kinect.frame_table[r, c])
             f = stamps[c].get(int(track_stamps[c][k])) if k >= 0 else None
-            depths.append(None if f is None else f.depth_mm)
+            depths.append(None if f is None else f.depth_mm if biases[c] is None
+                          else biases[c].correct(f.depth_mm, segs[c].calibration))
             masks.append(None if f is None else f.person_reliable)
         clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
                                   time=float(kinect.time[r]), config=cloud))
