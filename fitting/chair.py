@@ -473,6 +473,8 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                  f"depth is used as recorded"
                  for serial, b in zip(serials, biases, strict=True)
                  if cloud_cfg.depth_bias and b is None]
+    fixes = [None if b is None else b.corrector(s.calibration)
+             for b, s in zip(biases, segs, strict=True)]
     if kinect is not None:
         stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
         by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
@@ -493,8 +495,8 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                 f = (stamps[c].get(int(by_serial[serials[c]][k])) if k >= 0 else None)
             else:
                 f = seg.frames[int(r)]
-            depth = (None if f is None else f.depth_mm if biases[c] is None
-                     else biases[c].correct(f.depth_mm, seg.calibration))
+            depth = (None if f is None else f.depth_mm if fixes[c] is None
+                     else fixes[c](f.depth_mm))
             depths.append(depth)
             masks.append(None if f is None else scene_mask(f, seg, cfg, depth))
             if depth is not None:

@@ -400,6 +400,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                  f"depth is used as recorded"
                  for serial, b in zip(kinect.serials, biases, strict=True)
                  if cloud.depth_bias and b is None]
+    fixes = [None if b is None else b.corrector(s.calibration)
+             for b, s in zip(biases, segs, strict=True)]
     stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
     by_serial = {t.serial: t.timestamp_us for t in tracks}
     track_stamps = [by_serial[s] for s in kinect.serials]
@@ -409,8 +411,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         for c in range(len(segs)):
             k = int(kinect.frame_table[r, c])
             f = stamps[c].get(int(track_stamps[c][k])) if k >= 0 else None
-            depths.append(None if f is None else f.depth_mm if biases[c] is None
-                          else biases[c].correct(f.depth_mm, segs[c].calibration))
+            depths.append(None if f is None else f.depth_mm if fixes[c] is None
+                          else fixes[c](f.depth_mm))
             masks.append(None if f is None else f.person_reliable)
         clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
                                   time=float(kinect.time[r]), config=cloud))
