@@ -23,10 +23,11 @@ import cv2
 import numpy as np
 
 from .azure_calibration import KinectCalibration
+from .pointcloud import CloudConfig
 from .registration import pixel_rays
 from .segmentation import CameraSegmentation
 
-__all__ = ["DepthBias", "floor_depth_bias", "recording_depth_bias"]
+__all__ = ["DepthBias", "depth_correctors", "floor_depth_bias", "recording_depth_bias"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,3 +127,22 @@ def recording_depth_bias(segmentation: CameraSegmentation, frames: int = 5,
         person = cv2.dilate(f.person.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         depths.append(np.where(person, 0, f.depth_mm).astype(np.uint16))
     return floor_depth_bias(depths, seg.calibration, seg.world_from_depth)
+
+
+def depth_correctors(segmentations: Sequence[CameraSegmentation], serials: Sequence[str],
+                     config: CloudConfig, person_dilate_px: int = 3
+                     ) -> tuple[list[DepthBias | None], list[Callable[[np.ndarray], np.ndarray]
+                                                             | None], list[str]]:
+    """Per camera (with ``config.depth_bias``): its :func:`recording_depth_bias` and the
+    :meth:`DepthBias.corrector` to apply to its frames (None: depth used as recorded), and a
+    warning for each camera that saw too little floor to measure."""
+    if not config.depth_bias:
+        return [None] * len(segmentations), [None] * len(segmentations), []
+    biases = [recording_depth_bias(s, config.bias_frames, person_dilate_px)
+              for s in segmentations]
+    fixes = [None if b is None else b.corrector(s.calibration)
+             for b, s in zip(biases, segmentations, strict=True)]
+    warnings = [f"camera {serial}: too little floor in view to measure its depth error; its "
+                f"depth is used as recorded"
+                for serial, b in zip(serials, biases, strict=True) if b is None]
+    return biases, fixes, warnings

@@ -50,6 +50,7 @@ frame. ``world_from_object`` is the schema's ``/object/pose``: scan-frame vertic
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time as wallclock
 from collections.abc import Sequence
@@ -64,7 +65,7 @@ from tqdm.auto import tqdm
 
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics
-from couch.capture.depth_bias import DepthBias, recording_depth_bias
+from couch.capture.depth_bias import DepthBias, depth_correctors
 from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
 from couch.capture.segmentation import (
     CameraSegmentation,
@@ -112,7 +113,6 @@ class ChairConfig:
     Attributes:
         person_dilate_px: the person mask is grown by this many pixels before its complement
             may be chair (its rim is mixed depth and half-person).
-
         edge_ratio: drop depth-edge pixels (see :func:`~couch.capture.segmentation.
             depth_edges`) with this ratio; None: keep them. Both sides of every edge is all
             of a thin leg or stretcher at binned resolution (it took the chair's legs out of
@@ -244,6 +244,7 @@ class ChairScan:
                             o3d.core.Tensor(self.faces.astype(np.uint32)))
         return scene
 
+    @functools.cached_property
     def resting_rotations(self) -> np.ndarray:
         """(K,3,3) rotations (scan → world, Y up) of the scan's stable resting poses on a
         plane, most probable first (``trimesh.poses.compute_stable_poses`` about the area
@@ -466,15 +467,9 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
             warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
                             f"depth skipped")
         segs.append(seg)
-    cloud_cfg = cloud or CloudConfig()
-    biases = [recording_depth_bias(seg, cloud_cfg.bias_frames, cfg.person_dilate_px)
-              if cloud_cfg.depth_bias else None for seg in segs]
-    warnings += [f"camera {serial}: too little floor in view to measure its depth error; its "
-                 f"depth is used as recorded"
-                 for serial, b in zip(serials, biases, strict=True)
-                 if cloud_cfg.depth_bias and b is None]
-    fixes = [None if b is None else b.corrector(s.calibration)
-             for b, s in zip(biases, segs, strict=True)]
+    biases, fixes, unmeasured = depth_correctors(segs, serials, cloud or CloudConfig(),
+                                                 cfg.person_dilate_px)
+    warnings += unmeasured
     if kinect is not None:
         stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
         by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
@@ -750,7 +745,7 @@ def _floor_starts(scan: ChairScan, points: np.ndarray, cfg: ChairConfig) -> list
     mid = (points.max(0) + points.min(0)) / 2
     top = float(points[:, 1].max())
     out = []
-    for rest in scan.resting_rotations():
+    for rest in scan.resting_rotations:
         height = np.ptp(scan.vertices @ rest[1])
         if not top - cfg.rest_height <= height <= top + 2 * cfg.rest_height:
             continue

@@ -51,7 +51,7 @@ from tqdm.auto import tqdm
 from couch.body import BodyModel
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
-from couch.capture.depth_bias import recording_depth_bias
+from couch.capture.depth_bias import depth_correctors
 from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
 from couch.capture.segmentation import (
     ChairModel,
@@ -394,14 +394,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                             f"depth skipped")
         segs.append(seg)
         poses.append(pose)
-    biases = [recording_depth_bias(s, cloud.bias_frames) if cloud.depth_bias else None
-              for s in segs]
-    warnings += [f"camera {serial}: too little floor in view to measure its depth error; its "
-                 f"depth is used as recorded"
-                 for serial, b in zip(kinect.serials, biases, strict=True)
-                 if cloud.depth_bias and b is None]
-    fixes = [None if b is None else b.corrector(s.calibration)
-             for b, s in zip(biases, segs, strict=True)]
+    _, fixes, unmeasured = depth_correctors(segs, kinect.serials, cloud)
+    warnings += unmeasured
     stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
     by_serial = {t.serial: t.timestamp_us for t in tracks}
     track_stamps = [by_serial[s] for s in kinect.serials]
