@@ -10,8 +10,18 @@ jitters by centimetres) is larger than the gap that separates touching from hove
   :attr:`ContactConfig.smooth` seconds), and speeds come from a longer smoothing;
 * a contact *enters* only below the tight thresholds (distance and speed) and *leaves* only above
   the loose ones (hysteresis), so noise around one threshold does not make it flicker;
-* gaps shorter than :attr:`ContactConfig.max_gap` are filled and runs shorter than
+* gaps shorter than :attr:`ContactConfig.max_gap` are filled, each contact's edges are trimmed
+  to where the part is within the entry distance, and runs shorter than
   :attr:`ContactConfig.min_duration` are dropped.
+
+These guards cost an exact motion its short contacts (a palm that touches the chair for a frame
+or two as it moves, a frame at each end of a half-second hold), so they are applied only as far
+as the motion's own per-frame noise asks (:func:`motion_noise`, measured on the posed contact
+vertices): the smoothing brings it down to :attr:`ContactConfig.noise_target`, and the
+hysteresis band, the speed gate and the durations scale with the noise left after it
+(``guard`` of :func:`contact_flags`). A fused session fit measures 1-3 mm at 15-30 fps and is
+taken nearly frame by frame; an IMU-like fit (~2 cm) gets the full guards. At 5 fps a motion's
+own accelerations read as centimetres of noise, so slow recordings keep the guards too.
 
 Every threshold is in metres, m/s or seconds and converted to frames with ``fps``, so the
 same configuration serves 5, 15 and 30 fps recordings.
@@ -54,9 +64,12 @@ __all__ = [
     "fill_gaps",
     "hysteresis",
     "interaction_labels",
+    "motion_noise",
     "part_distances",
     "runs",
     "side_lean",
+    "smoothing_sigma",
+    "trim_edges",
     "walking",
 ]
 
@@ -83,8 +96,13 @@ class ContactConfig:
     leave_distance: float = 0.03  # m: ... and stops touching farther than this
     enter_speed: float = 0.5  # m/s: ... and may start touching only slower than this
     leave_speed: float = 1.0  # m/s: ... and stops touching faster than this
-    smooth: float = 0.1  # s: Gaussian sigma on the vertex positions before measuring
-    speed_smooth: float = 0.15  # s: Gaussian sigma on part centres before differentiating
+    # Smoothing is as strong as the motion's own per-frame noise asks (see :func:`motion_noise`):
+    # a Gaussian that brings white noise of the measured size down to ``noise_target``, at
+    # most these sigmas. Clean motion (a fused session fit, the simulator's truth) is measured
+    # as it is: smoothing it blurs the edges of half-second palm holds by a frame each.
+    smooth: float = 0.1  # s: largest Gaussian sigma on the vertex positions before measuring
+    speed_smooth: float = 0.15  # s: ... and on part centres before differentiating (in proportion)
+    noise_target: float = 0.01  # m: per-frame noise left after smoothing
     min_duration: float = 0.1  # s: shorter contacts are dropped (after gap filling)
     max_gap: float = 0.1  # s: shorter breaks inside a contact are filled
     floor_enter: float = 0.03  # m: foot-to-floor distance to start a floor contact ...
@@ -119,6 +137,8 @@ class ContactConfig:
                      "floor_enter", "floor_leave", "walk_speed", "stop_speed", "foot_lift"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ContactConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not self.noise_target > 0:
+            raise ValueError(f"ContactConfig.noise_target must be > 0, got {self.noise_target}")
         for name in ("smooth", "speed_smooth", "min_duration", "max_gap", "walk_smooth",
                      "min_seated", "merge_gap", "min_hand", "support_before", "min_lift",
                      "lap_distance",
@@ -149,6 +169,9 @@ class Contacts:
         floor_points: (T,2,3) float32 contact point on the floor, NaN where inactive.
         floor_distance: (T,2) float32 m, height of the foot's lowest vertex above the floor.
         fps: frames per second.
+        noise: m, the motion's per-frame noise as measured (:func:`motion_noise`).
+        guard: in [0, 1], how much of the noise guards the chair contacts got
+            (:func:`contact_flags`; 0: every frame's distance trusted as it is).
     """
 
     names: tuple[str, ...]
@@ -161,6 +184,8 @@ class Contacts:
     floor_points: np.ndarray
     floor_distance: np.ndarray
     fps: float
+    noise: float = 0.0
+    guard: float = 1.0
 
     @property
     def num_frames(self) -> int:
@@ -248,6 +273,44 @@ def drop_short_runs(flags: np.ndarray, min_frames: int) -> np.ndarray:
     return _runs_mask(f, e - s < min_frames, s, e)
 
 
+def trim_edges(flags: np.ndarray, core: np.ndarray) -> np.ndarray:
+    """(T,) or (T,K) bool ``flags`` with each True run cut to the span from its first to its last
+    ``core`` frame (a run without one goes)."""
+    f = np.asarray(flags, bool)
+    core = np.asarray(core, bool)
+    if f.shape != core.shape:
+        raise ValueError(f"trim_edges: flags {f.shape} and core {core.shape} differ")
+    core = core & f
+    if f.ndim == 2:
+        return np.stack([trim_edges(f[:, k], core[:, k]) for k in range(f.shape[1])], 1)
+    out = np.zeros_like(f)
+    idx = np.flatnonzero(core)
+    for a, b in zip(*runs(f), strict=True):
+        inside = idx[(idx >= a) & (idx < b)]
+        if len(inside):
+            out[inside[0]:inside[-1] + 1] = True
+    return out
+
+
+def motion_noise(positions: np.ndarray) -> float:
+    """Robust per-frame noise (m) of (T,N,3) point tracks: the median absolute second
+    difference over frames, points and axes, as the standard deviation of white noise
+    (second differences of white noise σ have σ·√6; the median absolute deviation is 0.6745 σ).
+    Smooth motion at 15-30 fps measures under 3 mm, an IMU-like fit (3° per bone, 1 cm) ~2 cm."""
+    p = np.asarray(positions, np.float64)
+    if len(p) < 3:
+        return 0.0
+    return float(np.median(np.abs(p[2:] - 2 * p[1:-1] + p[:-2])) / (0.6745 * np.sqrt(6)))
+
+
+def smoothing_sigma(noise: float, target: float, most: float, fps: float) -> float:
+    """Gaussian sigma (s) that brings white noise of ``noise`` (m) per frame down to
+    ``target`` (m), at most ``most`` s: a Gaussian of σ frames divides white noise by
+    √(2√π σ)."""
+    frames = (noise / target) ** 2 / (2 * np.sqrt(np.pi))
+    return float(min(most, frames / fps))
+
+
 def hysteresis(enter: np.ndarray, leave: np.ndarray, initial: bool = False) -> np.ndarray:
     """Two-threshold switch, vectorised over frames.
 
@@ -286,7 +349,8 @@ def _smooth(x: np.ndarray, seconds: float, fps: float) -> np.ndarray:
 
 def contact_flags(distance: np.ndarray, speed: np.ndarray, fps: float,
                   config: ContactConfig | None = None, enter: float | None = None,
-                  leave: float | None = None, min_duration: float | None = None) -> np.ndarray:
+                  leave: float | None = None, min_duration: float | None = None,
+                  guard: float = 1.0) -> np.ndarray:
     """Contact flags from per-frame distances and speeds, thresholds in physical units.
 
     Args:
@@ -297,10 +361,16 @@ def contact_flags(distance: np.ndarray, speed: np.ndarray, fps: float,
         enter, leave: distance thresholds (m) overriding ``config.enter_distance`` /
             ``config.leave_distance`` (the floor and the support test use their own).
         min_duration: s, overriding ``config.min_duration``.
+        guard: in [0, 1], how much of the guards against a noisy motion to apply: the
+            hysteresis band (``leave - enter``), the minimum duration and the speed gate (its
+            thresholds divided by ``guard``) scale with it. 1 for a motion as noisy as
+            ``config.noise_target`` or more; 0 trusts each frame's distance alone (exact motion).
 
     Returns (T,K) bool: hysteresis (enter when closer than ``enter`` and slower than
     ``enter_speed``; leave when farther than ``leave`` or faster than ``leave_speed``), then
-    gaps up to ``max_gap`` filled, then runs shorter than ``min_duration`` dropped.
+    gaps up to ``max_gap`` filled, then each contact's first and last frames farther than
+    ``enter`` trimmed (the hysteresis holds a contact through a noisy excursion inside it, not
+    past where the part arrives and leaves), then runs shorter than ``min_duration`` dropped.
     """
     cfg = config or ContactConfig()
     distance = np.asarray(distance, np.float64)
@@ -314,10 +384,15 @@ def contact_flags(distance: np.ndarray, speed: np.ndarray, fps: float,
     leave_d = cfg.leave_distance if leave is None else leave
     if leave_d < enter_d:
         raise ValueError(f"contact_flags: leave distance {leave_d} m is below enter {enter_d} m")
-    on = hysteresis((distance < enter_d) & (speed < cfg.enter_speed),
-                    (distance > leave_d) | (speed > cfg.leave_speed))
-    on = fill_gaps(on, _frames(cfg.max_gap, fps))
-    shortest = cfg.min_duration if min_duration is None else min_duration
+    if not 0.0 <= guard <= 1.0:
+        raise ValueError(f"contact_flags: guard must be in [0, 1], got {guard}")
+    leave_d = enter_d + (leave_d - enter_d) * guard
+    slow = np.inf if guard == 0 else cfg.enter_speed / guard
+    fast = np.inf if guard == 0 else cfg.leave_speed / guard
+    close = distance < enter_d
+    on = hysteresis(close & (speed < slow), (distance > leave_d) | (speed > fast))
+    on = trim_edges(fill_gaps(on, _frames(cfg.max_gap * guard, fps)), close)
+    shortest = (cfg.min_duration if min_duration is None else min_duration) * guard
     return drop_short_runs(on, max(1, _frames(shortest, fps)))
 
 
@@ -451,18 +526,24 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     owner = np.concatenate([np.full(len(s), k) for k, s in enumerate(sets)])
     thighs = _thigh_vertices(model)
     raw, joints = _pose(model, params, np.concatenate([ids, thighs]))  # (T,N+m,3)
-    raw, thigh_v = raw[:, :len(ids)], _smooth(raw[:, len(ids):], cfg.smooth, fps)
-    verts = _smooth(raw, cfg.smooth, fps)
+    noise = motion_noise(raw[:, :len(ids)])
+    sigma = smoothing_sigma(noise, cfg.noise_target, cfg.smooth, fps)
+    # what per-frame noise is left after that smoothing, against what the guards were made for
+    left = noise / np.sqrt(max(1.0, 2 * np.sqrt(np.pi) * sigma * fps))
+    guard = float(min(1.0, left / cfg.noise_target))
+    raw, thigh_v = raw[:, :len(ids)], _smooth(raw[:, len(ids):], sigma, fps)
+    verts = _smooth(raw, sigma, fps)
 
     # Part centres move with the part; their speed tells resting from passing by. A longer
     # smoothing than for the distances, because differentiation amplifies per-frame noise.
     centres = np.stack([raw[:, owner == k].mean(1) for k in range(len(sets))], 1)  # (T,K,3)
-    centres = _smooth(centres, cfg.speed_smooth, fps)
+    centres = _smooth(centres, sigma * cfg.speed_smooth / cfg.smooth if cfg.smooth > 0 else 0.0,
+                      fps)
     speed = (np.linalg.norm(np.gradient(centres, axis=0), axis=-1) * fps if t > 1
              else np.zeros((t, len(sets))))
 
     distance, nearest = part_distances(verts, owner, surface)
-    active = contact_flags(distance, speed, fps, cfg)
+    active = contact_flags(distance, speed, fps, cfg, guard=guard)
     points = np.where(active[..., None], nearest, np.nan).astype(np.float32)
 
     # Feet on the floor: the lowest foot vertex's height; a foot on the chair is not on the
@@ -496,7 +577,8 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     return Contacts(names=tuple(CONTACT_NAMES), active=active, points=points, labels=labels,
                     distance=distance.astype(np.float32), speed=speed.astype(np.float32),
                     floor_active=floor_active, floor_points=floor_points,
-                    floor_distance=floor_distance.astype(np.float32), fps=float(fps))
+                    floor_distance=floor_distance.astype(np.float32), fps=float(fps),
+                    noise=noise, guard=guard)
 
 
 def walking(pelvis: np.ndarray, fps: float, config: ContactConfig | None = None) -> np.ndarray:

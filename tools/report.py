@@ -186,6 +186,9 @@ def _contacts_summary(contacts: Contacts | None) -> dict[str, Any] | None:
     labels = np.asarray(contacts.labels).astype(np.int64)
     return {
         "frames": len(active),
+        # the motion's per-frame noise and how much of the detector's guards it got
+        "motion_noise_mm": float(contacts.noise) * 1e3,
+        "guard": float(contacts.guard),
         "active_frames": {n: int(active[:, j].sum()) for j, n in enumerate(contacts.names)},
         "floor_frames": {n: int(floor[:, j].sum())
                          for j, n in enumerate(("left_foot", "right_foot")[: floor.shape[1]])},

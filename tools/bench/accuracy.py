@@ -1,0 +1,203 @@
+"""Benchmark: ``couch-process`` accuracy against the simulator's truth on several sessions.
+
+Issue 8 asks for its numbers "on simulator sessions with several seeds, chairs and noise
+levels". This simulates such a set (:data:`SESSIONS`: every chair kind, every interaction type,
+sensor noise 0.5-1.5x, 4 cameras with binned depth, no colour), processes each with nothing
+given (our calibration, sync, fits, chair registration; the cache ignored), and prints per
+session and pooled over all of them: the chair's rotation, centre and worst-vertex error, its
+chamfer, the body's MPJPE, contact F1 per part (frames of all sessions pooled) and interaction
+label accuracy. Everything is compared in the simulator's world after the rigid transform that
+maps our camera centres onto the true ones, so the calibration's error is in every number.
+
+Run: ``python -m couch.tools.bench.accuracy [-o DIR] [--sessions N] [--fps F] [--duration S]
+[--threads K]``. A session takes about 3 min to simulate and process at 15 fps, 8 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import couch
+from couch.body.skeleton import CONTACT_NAMES
+from couch.fitting import PipelineResult, mpjpe
+from couch.geometry import apply_transform, fit_rigid_transform
+from couch.rotations import rotation_angle
+from couch.schema import ProcessedSession, read_processed
+
+__all__ = ["SESSIONS", "SessionAccuracy", "session_accuracy", "truth_from_ours"]
+
+#: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x.
+SESSIONS: list[tuple[str, dict[str, Any]]] = [
+    ("armchair-right", dict(seed=5, chair="armchair", noise=1.5, interaction="right_hand")),
+    ("straight-left", dict(seed=21, chair="straight", noise=1.0, interaction="left_hand")),
+    ("sofa-both", dict(seed=22, chair="sofa", noise=1.0, interaction="both_hands")),
+    ("stool-none", dict(seed=23, chair="stool", noise=0.5, interaction="no_contact")),
+    ("armchair-both", dict(seed=24, chair="armchair", noise=1.0, interaction="both_hands")),
+    ("straight-right", dict(seed=25, chair="straight", noise=1.5, interaction="right_hand")),
+    ("sofa-left", dict(seed=26, chair="sofa", noise=0.5, interaction="left_hand")),
+    ("armchair-free", dict(seed=27, chair="armchair", noise=1.0, interaction="free")),
+]
+
+
+@dataclasses.dataclass
+class SessionAccuracy:
+    """One processed session against its truth.
+
+    Attributes:
+        chair_deg: rotation error of the registered chair (degrees).
+        chair_mm / chair_centre_mm: its worst scan vertex's / its centre's position error (mm).
+        chamfer_cm: the registration's chamfer to the chair points (cm).
+        mpjpe_cm: mean per-joint position error of the processed motion (cm).
+        contacts: (5,3) int true positive, false positive and false negative frames per part
+            (``CONTACT_NAMES`` order).
+        labels: interaction label accuracy over the processed frames.
+        time_ms: largest difference between the processed and the true frame times (ms).
+        noise_mm: the processed motion's per-frame noise as the contact detector measured it
+            (mm), and guard how much of its noise guards that asked for (``Contacts.guard``).
+    """
+
+    chair_deg: float
+    chair_mm: float
+    chair_centre_mm: float
+    chamfer_cm: float
+    mpjpe_cm: float
+    contacts: np.ndarray
+    labels: float
+    time_ms: float
+    noise_mm: float
+    guard: float
+
+    @property
+    def f1(self) -> np.ndarray:
+        """(5,) contact F1 per part (1 where neither side has a contact frame)."""
+        return f1_score(self.contacts)
+
+    @property
+    def true_frames(self) -> np.ndarray:
+        """(5,) frames in which the truth has each part in contact."""
+        return self.contacts[:, 0] + self.contacts[:, 2]
+
+    def line(self, name: str) -> str:
+        return (f"[{name}] chair rotation {self.chair_deg:.3f} deg, position (centre) error "
+                f"{self.chair_centre_mm:.2f} mm, largest vertex error {self.chair_mm:.2f} mm, "
+                f"chamfer {self.chamfer_cm:.3f} cm; MPJPE {self.mpjpe_cm:.2f} cm; contact F1 "
+                + ", ".join(f"{n} {f:.2f} ({t} true frames)" for n, f, t in
+                            zip(CONTACT_NAMES, self.f1, self.true_frames, strict=True))
+                + f"; label accuracy {self.labels:.3f}; time stamps within {self.time_ms:.3f} ms"
+                f"; motion noise {self.noise_mm:.1f} mm (guard {self.guard:.2f})")
+
+
+def f1_score(counts: np.ndarray) -> np.ndarray:
+    """(...,3) true positive, false positive, false negative counts → (...) F1 (1 when all
+    three are 0: nothing to find and nothing found)."""
+    tp, fp, fn = np.moveaxis(np.asarray(counts, np.float64), -1, 0)
+    return np.where(tp + fp + fn > 0, 2 * tp / np.maximum(2 * tp + fp + fn, 1), 1.0)
+
+
+def truth_from_ours(result: PipelineResult, info: dict[str, Any]) -> np.ndarray:
+    """(4,4) our world → the simulator's world, from the cameras' centres (``info``: the
+    session's truth.json)."""
+    true = {c["serial"]: np.array(c["world_from_depth"]) for c in info["cameras"]}
+    serials = [s for s in result.extrinsics.cameras if s in true]
+    ours = np.array([result.extrinsics.world_from_depth(s)[:3, 3] for s in serials])
+    return fit_rigid_transform(ours, np.array([true[s][:3, 3] for s in serials]))
+
+
+def session_accuracy(result: PipelineResult, truth: ProcessedSession,
+                     info: dict[str, Any]) -> SessionAccuracy:
+    """The issue's end-to-end numbers of one processed session against the simulator's truth
+    (``truth``: its ground_truth.h5; ``info``: its truth.json)."""
+    data = read_processed(result.processed)
+    align = truth_from_ours(result, info)
+    true_pose = np.array(info["chair"]["world_from_scan"])
+    est = align @ data.object_pose
+    v = data.object_vertices.astype(np.float64)
+    rows = data.quality["frame_rows"]
+    act, true_act = data.contact_active, truth.contact_active[rows]
+    centre = v.mean(0)[None]
+    return SessionAccuracy(
+        chair_deg=float(np.degrees(rotation_angle(est[:3, :3].T @ true_pose[:3, :3]))),
+        chair_mm=float(np.linalg.norm(apply_transform(est, v) - apply_transform(true_pose, v),
+                                      axis=1).max() * 1e3),
+        chair_centre_mm=float(np.linalg.norm(apply_transform(est, centre)
+                                             - apply_transform(true_pose, centre)) * 1e3),
+        chamfer_cm=float(result.chair.chamfer * 100),
+        mpjpe_cm=float(mpjpe(apply_transform(align, data.joints.astype(np.float64)),
+                             truth.joints[rows]).mean() * 100),
+        contacts=np.stack([(act & true_act).sum(0), (act & ~true_act).sum(0),
+                           (~act & true_act).sum(0)], 1).astype(np.int64),
+        labels=float((data.interaction == truth.interaction[rows]).mean()),
+        time_ms=float(np.abs(data.time - truth.time[rows]).max() * 1e3),
+        noise_mm=float(result.contacts.noise * 1e3) if result.contacts else float("nan"),
+        guard=float(result.contacts.guard) if result.contacts else float("nan"),
+    )
+
+
+def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float
+         ) -> SessionAccuracy:
+    from couch.tools.sim.session import SessionConfig, simulate_session
+
+    root = work / name
+    if not (root / "truth.json").exists():
+        simulate_session(root, SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED", color=False,
+                                             charuco_poses=4, fps=fps, duration=duration,
+                                             **settings), progress=False)
+    result = couch.process(root, work / f"{name}.out", force=True, report=False)
+    if not result.ok:
+        raise SystemExit(f"{name}: processing failed at {result.fault[0]}: {result.fault[1]}")
+    return session_accuracy(result, read_processed(root / "ground_truth.h5"),
+                            json.loads((root / "truth.json").read_text()))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("-o", "--output", type=Path, default=None,
+                    help="keep the simulated sessions and outputs here (re-used when present; "
+                         "default: a temporary folder)")
+    ap.add_argument("--sessions", type=int, default=len(SESSIONS),
+                    help=f"the first N of the {len(SESSIONS)} sessions")
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--duration", type=float, default=8.0, help="seconds per session")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    args = ap.parse_args(argv)
+    if not 1 <= args.sessions <= len(SESSIONS):
+        ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.output or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for name, settings in SESSIONS[:args.sessions]:
+            t0 = time.perf_counter()
+            a = _one(name, settings, work, args.fps, args.duration)
+            print(a.line(name) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+            rows.append(a)
+    counts = np.sum([a.contacts for a in rows], axis=0)
+    pooled = f1_score(counts)
+    print(f"\n{len(rows)} sessions, {args.fps:g} fps, {args.duration:g} s each "
+          f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})")
+    print(f"chair: worst vertex {max(a.chair_mm for a in rows):.2f} mm, rotation "
+          f"{max(a.chair_deg for a in rows):.3f} deg, chamfer "
+          f"{max(a.chamfer_cm for a in rows):.2f} cm (largest of the sessions)")
+    print(f"body: MPJPE {np.mean([a.mpjpe_cm for a in rows]):.2f} cm mean, "
+          f"{max(a.mpjpe_cm for a in rows):.2f} cm largest")
+    for k, n in enumerate(CONTACT_NAMES):
+        tp, fp, fn = counts[k]
+        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn})")
+    print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
+          f"{min(a.labels for a in rows):.3f} lowest")
+
+
+if __name__ == "__main__":
+    main()
