@@ -269,9 +269,12 @@ class ChairScan:
 
 def _watertight(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """Every edge shared by exactly two faces, with coincident vertices merged (OBJ writers
-    split vertices per part or per normal)."""
+    split vertices per part or per normal) and the faces that merging collapses dropped (two
+    coincident vertices of one surface, e.g. where a profile's radius reaches zero, leave
+    zero-area slivers that are no hole)."""
     _, ids = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
     f = ids.reshape(-1)[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
     edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     edges = edges[edges[:, 0] != edges[:, 1]]
     if not len(edges):

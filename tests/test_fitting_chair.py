@@ -326,6 +326,30 @@ def test_bad_scan_gives_clear_error(sim, bad_scans, kind):
         register_session_chair(s["root"], s["ext"], scan=path)
 
 
+def test_coincident_vertices_of_one_surface_are_no_hole():
+    """A watertight box whose edge a-b runs through a second vertex a' at a's position (zero-area
+    slivers a-a'-x, a'-a-y): the simulator's stool had such a pair where a profile closes. Merged
+    by position, the slivers collapse and the box is watertight; a real hole still fails."""
+    trimesh = pytest.importorskip("trimesh")
+    box = trimesh.creation.box((0.4, 0.45, 0.4))
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    a, b = f[0, 0], f[0, 1]
+    x = f[0, 2]
+    other = next(i for i, t in enumerate(f) if i and a in t and b in t)
+    y = next(int(k) for k in f[other] if k not in (a, b))
+    v2 = np.vstack([v, v[a]])
+    a2 = len(v)
+    faces = [t for i, t in enumerate(f.tolist()) if i not in (0, other)]
+    faces += [[a2, b, x], [a, a2, x]]  # face 0 (a, b, x) split at a'
+    faces += [[b, a2, y], [a2, a, y]]  # the neighbour (b, a, y), wound the other way round
+    f2 = np.array(faces)
+    assert trimesh.Trimesh(v2, f2, process=False).is_watertight
+    scan = load_scan((v2, f2))
+    assert len(scan.faces) == 14
+    with pytest.raises(ChairRegistrationError, match="not watertight"):
+        load_scan((v2, f2[1:]))
+
+
 def test_session_entry_point(sim):
     """``register_session_chair`` (clouds every 2nd frame) agrees with the full run."""
     s = sim("straight")

@@ -36,16 +36,17 @@ from couch.schema import ProcessedSession, read_processed
 
 __all__ = ["SESSIONS", "SessionAccuracy", "session_accuracy", "truth_from_ours"]
 
-#: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x.
+#: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x;
+#: seeds whose subject and chair the simulator draws within a few tries.
 SESSIONS: list[tuple[str, dict[str, Any]]] = [
     ("armchair-right", dict(seed=5, chair="armchair", noise=1.5, interaction="right_hand")),
-    ("straight-left", dict(seed=21, chair="straight", noise=1.0, interaction="left_hand")),
-    ("sofa-both", dict(seed=22, chair="sofa", noise=1.0, interaction="both_hands")),
-    ("stool-none", dict(seed=23, chair="stool", noise=0.5, interaction="no_contact")),
-    ("armchair-both", dict(seed=24, chair="armchair", noise=1.0, interaction="both_hands")),
-    ("straight-right", dict(seed=25, chair="straight", noise=1.5, interaction="right_hand")),
-    ("sofa-left", dict(seed=26, chair="sofa", noise=0.5, interaction="left_hand")),
-    ("armchair-free", dict(seed=27, chair="armchair", noise=1.0, interaction="free")),
+    ("straight-left", dict(seed=22, chair="straight", noise=1.0, interaction="left_hand")),
+    ("sofa-both", dict(seed=23, chair="sofa", noise=1.0, interaction="both_hands")),
+    ("stool-none", dict(seed=21, chair="stool", noise=0.5, interaction="no_contact")),
+    ("armchair-both", dict(seed=57, chair="armchair", noise=1.0, interaction="both_hands")),
+    ("straight-right", dict(seed=24, chair="straight", noise=1.5, interaction="right_hand")),
+    ("sofa-left", dict(seed=21, chair="sofa", noise=0.5, interaction="left_hand")),
+    ("armchair-free", dict(seed=21, chair="armchair", noise=1.0, interaction="free")),
 ]
 
 
