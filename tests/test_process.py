@@ -30,6 +30,7 @@ from couch.fitting.metrics import mpjpe
 from couch.fitting.pipeline import STAGES, ProcessError, run_pipeline
 from couch.geometry import apply_transform
 from couch.schema import read_processed
+from couch.tools.bench import accuracy
 from couch.tools.bench.accuracy import SessionAccuracy, session_accuracy, truth_from_ours
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"
@@ -106,6 +107,16 @@ def test_end_to_end_on_more_sessions(name, tmp_path):
                          json.loads((root / "truth.json").read_text()))
     print(a.line(name))
     _assert_accuracy(a, labels)
+
+
+def test_accuracy_bench_pools_f1_and_checks_its_arguments():
+    """``python -m couch.tools.bench.accuracy`` (the sessions themselves take minutes each: run
+    by hand, README): F1 from pooled counts, 1 where nothing was there to find."""
+    assert accuracy.f1_score(np.array([[2, 1, 1], [0, 0, 0], [0, 3, 0]])).tolist() == [
+        pytest.approx(4 / 6), 1.0, 0.0]
+    with pytest.raises(SystemExit):
+        accuracy.main(["--sessions", "0"])
+    assert len({name for name, _ in accuracy.SESSIONS}) == len(accuracy.SESSIONS)
 
 
 def test_report_is_written(run):

@@ -145,22 +145,27 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
 
 
 def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float
-         ) -> SessionAccuracy:
-    from couch.tools.sim.session import SessionConfig, simulate_session
+         ) -> SessionAccuracy | str:
+    """One session simulated (unless ``work`` holds it), processed and measured; a string says
+    why it could not be."""
+    from couch.tools.sim.session import NoPlausibleSequence, SessionConfig, simulate_session
 
     root = work / name
     if not (root / "truth.json").exists():
-        simulate_session(root, SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED", color=False,
-                                             charuco_poses=4, fps=fps, duration=duration,
-                                             **settings), progress=False)
+        try:
+            simulate_session(root, SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED",
+                                                 color=False, charuco_poses=4, fps=fps,
+                                                 duration=duration, **settings), progress=False)
+        except NoPlausibleSequence as e:
+            return f"not simulated: {e}"
     result = couch.process(root, work / f"{name}.out", force=True, report=False)
     if not result.ok:
-        raise SystemExit(f"{name}: processing failed at {result.fault[0]}: {result.fault[1]}")
+        return f"processing failed at {result.fault[0]}: {result.fault[1]}"
     return session_accuracy(result, read_processed(root / "ground_truth.h5"),
                             json.loads((root / "truth.json").read_text()))
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("-o", "--output", type=Path, default=None,
                     help="keep the simulated sessions and outputs here (re-used when present; "
@@ -175,19 +180,27 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
     if args.threads:
         torch.set_num_threads(args.threads)
+    rows: list[SessionAccuracy] = []
+    failed: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = args.output or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        rows = []
         for name, settings in SESSIONS[:args.sessions]:
             t0 = time.perf_counter()
             a = _one(name, settings, work, args.fps, args.duration)
+            if isinstance(a, str):
+                failed.append(name)
+                print(f"[{name}] {a}", flush=True)
+                continue
             print(a.line(name) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
             rows.append(a)
+    print(f"\n{len(rows)} sessions, {args.fps:g} fps, {args.duration:g} s each "
+          f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})"
+          + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
+    if not rows:
+        return 1
     counts = np.sum([a.contacts for a in rows], axis=0)
     pooled = f1_score(counts)
-    print(f"\n{len(rows)} sessions, {args.fps:g} fps, {args.duration:g} s each "
-          f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})")
     print(f"chair: worst vertex {max(a.chair_mm for a in rows):.2f} mm, rotation "
           f"{max(a.chair_deg for a in rows):.3f} deg, chamfer "
           f"{max(a.chamfer_cm for a in rows):.2f} cm (largest of the sessions)")
@@ -198,7 +211,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn})")
     print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
           f"{min(a.labels for a in rows):.3f} lowest")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
