@@ -152,7 +152,9 @@ class ChairConfig:
         min_point_fraction: ... or with fewer than this share of the best frame's count.
         min_fitness: reject below this share of inliers among the cropped points.
         max_rmse: reject above this RMS inlier distance.
-        ambiguity_fitness: candidates within this fitness of the best are equally good ...
+        ambiguity_fitness: candidates within this fitness of the best are equally good (then
+            the one explaining the most points of all frames is kept, and those within this
+            share of its count are the ambiguity) ...
         ambiguity_deg: ... and ambiguous when their rotation differs by more than this.
         move_mm, move_deg: a pose this far from its segment's starts a new segment ...
         min_segment_frames: ... when this many accepted frames in a row agree (else: outliers).
@@ -793,6 +795,18 @@ def _shifted(scan: ChairScan, start: np.ndarray, cfg: ChairConfig) -> list[np.nd
     return out
 
 
+def _explained(clouds: Sequence[FusedCloud], scan: ChairScan,
+               scene: o3d.t.geometry.RaycastingScene, pose: np.ndarray, cfg: ChairConfig) -> int:
+    """Points of all ``clouds`` within ``inlier_distance`` of the scan posed at ``pose``."""
+    total = 0
+    for c in clouds:
+        pts = np.asarray(c.points, np.float64)
+        if len(pts):
+            _, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin, cfg.inlier_distance)
+            total += int(np.count_nonzero(d < cfg.inlier_distance))
+    return total
+
+
 def _good(r: FrameResult, cfg: ChairConfig) -> bool:
     return (r.pose is not None and r.points >= cfg.min_points and r.fitness >= cfg.min_fitness
             and r.rmse <= cfg.max_rmse)
@@ -1046,10 +1060,21 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
             f"{scan.name}: the scan does not fit the points of {where} (frame "
             f"{int(frames[best])}: best fitness {top.fitness:.2f}, rmse {top.rmse * 1e3:.1f} mm, "
             f"{top.points} points): is the scan of this chair and in metres?")
-    # candidates as good as the best but turned: a symmetric chair
-    ambiguity = sorted({round(float(rotation_angle_deg(c.pose, top.pose)), 1) for c in cands[1:]
-                        if c.fitness >= top.fitness - cfg.ambiguity_fitness and _good(c, cfg)
-                        and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg})
+    # candidates as good as the best but turned: a symmetric chair, or a nearly symmetric one
+    # whose telling part (a stool's leg) the person hides in this frame. The chair is static,
+    # so every frame's points judge them: the turn that explains the most points wins, and
+    # the turns that explain about as many are the ambiguity reported.
+    rivals = [top] + [c for c in cands[1:]
+                      if c.fitness >= top.fitness - cfg.ambiguity_fitness and _good(c, cfg)
+                      and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg]
+    ambiguity: list[float] = []
+    if len(rivals) > 1:
+        explained = np.array([_explained(cl, scan, scene, c.pose, cfg) for c in rivals])
+        top = rivals[int(np.argmax(explained))]
+        ambiguity = sorted({round(float(rotation_angle_deg(c.pose, top.pose)), 1)
+                            for c, e in zip(rivals, explained, strict=True)
+                            if e >= (1 - cfg.ambiguity_fitness) * explained.max()
+                            and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg})
     sec["global"] = wallclock.perf_counter() - t0
 
     # per-frame ICP from the previous accepted pose; re-detect where it fails

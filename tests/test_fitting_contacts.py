@@ -12,7 +12,7 @@ motion and on it perturbed like an IMU (``imu_like_init``: 3 deg per bone and ax
 axis, white per frame), with the coarse body model.
 
 Measured when written (``pytest -s``, 19 sequences, 2850 frames), IMU-like motion / truth
-motion: contact F1 pelvis 0.99 / 1.00, left hand 0.69 / 1.00, right hand 0.71 / 1.00 (feet:
+motion: contact F1 pelvis 0.99 / 1.00, left hand 0.69 / 0.96, right hand 0.71 / 0.99 (feet:
 2 truth frames in all, see the printout); label accuracy 0.99 / 0.99 (0.933 / 0.934 while
 a touch anywhere in the episode counted as support: the left hand of right-hand sequences on
 armchairs brushes the armrest while the subject turns in front of the chair); median contact
@@ -20,9 +20,11 @@ point error hands 1.4 / 0.5-0.9 cm, pelvis ~12 cm (the truth's point is its sing
 nearest vertex's, which jumps between seat and backrest). The detector measures the motion's
 own per-frame noise and applies its guards (smoothing, hysteresis band, speed gate, minimum
 duration) only as far as that noise asks: on the exact truth motion it trusts each frame, and
-hand F1 went from 0.84 / 0.85 to 1.00 (the guards had dropped palms that touch the chair for
-one or two frames while moving, and moved every hold's ends by a frame; at 5 fps, measured
-apart, 0.90 / 0.90 to 0.99 / 0.98). On the IMU-like motion the hands move ~3.5 cm per frame,
+hand F1 went from 0.84 / 0.85 to 0.96 / 0.99 (the guards had dropped palms that touch the
+chair for one or two frames while moving, and moved every hold's ends by a frame; at 5 fps,
+measured apart, 0.90 / 0.90 to 0.95 / 0.98). What is left are the 13 frames of a left palm
+hovering 2-3 cm over an armrest between two touches, which the hysteresis band holds (it
+stays whole at any noise: it also holds a fitted palm through the fit's offset). On the IMU-like motion the hands move ~3.5 cm per frame,
 more than the 2 cm that separates touching from hovering, and most hand contacts last under
 half a second: 0.69 / 0.71, below the issue's 0.95 (more smoothing loses the short holds:
 0.45-0.53 at twice the sigma). Detection runs at ~700
@@ -182,13 +184,13 @@ def test_motion_noise_measures_white_noise_not_motion():
 
 def test_guard_zero_trusts_each_frame():
     """Exact motion: a palm that touches for one frame while sliding at 1.5 m/s touches; with
-    the full guards (a noisy fit) the speed gate and the minimum duration drop it; the
-    hysteresis band shrinks with the guard (2.5 cm holds at guard 1, not at 0)."""
+    the full guards (a noisy fit) the speed gate and the minimum duration drop it. The
+    hysteresis band holds at any guard (2.5 cm inside a contact stays in it)."""
     d = np.array([0.05, 0.05, 0.01, 0.05, 0.05, 0.01, 0.01, 0.025, 0.01, 0.05])[:, None]
     speed = np.full_like(d, 1.5)
     speed[5:9] = 0.1
     exact = contact_flags(d, speed, 30.0, guard=0.0)[:, 0]
-    assert exact.tolist() == [0, 0, 1, 0, 0, 1, 1, 0, 1, 0]
+    assert exact.tolist() == [0, 0, 1, 0, 0, 1, 1, 1, 1, 0]
     guarded = contact_flags(d, speed, 30.0, guard=1.0)[:, 0]
     assert guarded.tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1, 0]
     with pytest.raises(ValueError, match="guard"):
