@@ -18,17 +18,17 @@ a touch anywhere in the episode counted as support: the left hand of right-hand 
 armchairs brushes the armrest while the subject turns in front of the chair); median contact
 point error hands 1.4 / 0.5-0.9 cm, pelvis ~12 cm (the truth's point is its single
 nearest vertex's, which jumps between seat and backrest). The detector measures the motion's
-own per-frame noise and applies its guards (smoothing, hysteresis band, speed gate, minimum
+own per-frame noise and applies its guards (smoothing, speed gate, gap filling, minimum
 duration) only as far as that noise asks: on the exact truth motion it trusts each frame, and
 hand F1 went from 0.84 / 0.85 to 0.96 / 0.99 (the guards had dropped palms that touch the
 chair for one or two frames while moving, and moved every hold's ends by a frame; at 5 fps,
 measured apart, 0.90 / 0.90 to 0.95 / 0.98). What is left are the 13 frames of a left palm
 hovering 2-3 cm over an armrest between two touches, which the hysteresis band holds (it
-stays whole at any noise: it also holds a fitted palm through the fit's offset). On the IMU-like motion the hands move ~3.5 cm per frame,
-more than the 2 cm that separates touching from hovering, and most hand contacts last under
-half a second: 0.69 / 0.71, below the issue's 0.95 (more smoothing loses the short holds:
-0.45-0.53 at twice the sigma). Detection runs at ~700
-frames/s on 2 cores (coarse body model).
+stays whole at any noise: it also holds a fitted palm through the fit's offset). On the
+IMU-like motion the hands move ~3.5 cm per frame, more than the 2 cm that separates touching
+from hovering, and most hand contacts last under half a second: 0.69 / 0.71, below the
+issue's 0.95 (more smoothing loses the short holds: 0.45-0.53 at twice the sigma). Detection
+runs at ~700 frames/s on 2 cores (coarse body model).
 """
 
 from __future__ import annotations
