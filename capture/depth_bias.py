@@ -129,18 +129,23 @@ def recording_depth_bias(segmentation: CameraSegmentation, frames: int = 5,
     return floor_depth_bias(depths, seg.calibration, seg.world_from_depth)
 
 
+def _as_recorded(depth_mm: np.ndarray) -> np.ndarray:
+    return depth_mm
+
+
 def depth_correctors(segmentations: Sequence[CameraSegmentation], serials: Sequence[str],
                      config: CloudConfig, person_dilate_px: int = 3
-                     ) -> tuple[list[DepthBias | None], list[Callable[[np.ndarray], np.ndarray]
-                                                             | None], list[str]]:
-    """Per camera (with ``config.depth_bias``): its :func:`recording_depth_bias` and the
-    :meth:`DepthBias.corrector` to apply to its frames (None: depth used as recorded), and a
-    warning for each camera that saw too little floor to measure."""
+                     ) -> tuple[list[DepthBias | None], list[Callable[[np.ndarray], np.ndarray]],
+                                list[str]]:
+    """Per camera (with ``config.depth_bias``): its :func:`recording_depth_bias` (None: not
+    measured) and the function to apply to its (H,W) uint16 mm frames (its
+    :meth:`DepthBias.corrector`, or the depth as recorded), and a warning for each camera that
+    saw too little floor to measure."""
     if not config.depth_bias:
-        return [None] * len(segmentations), [None] * len(segmentations), []
+        return [None] * len(segmentations), [_as_recorded] * len(segmentations), []
     biases = [recording_depth_bias(s, config.bias_frames, person_dilate_px)
               for s in segmentations]
-    fixes = [None if b is None else b.corrector(s.calibration)
+    fixes = [_as_recorded if b is None else b.corrector(s.calibration)
              for b, s in zip(biases, segmentations, strict=True)]
     warnings = [f"camera {serial}: too little floor in view to measure its depth error; its "
                 f"depth is used as recorded"

@@ -495,8 +495,7 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                 f = (stamps[c].get(int(by_serial[serials[c]][k])) if k >= 0 else None)
             else:
                 f = seg.frames[int(r)]
-            depth = (None if f is None else f.depth_mm if fixes[c] is None
-                     else fixes[c](f.depth_mm))
+            depth = None if f is None else fixes[c](f.depth_mm)
             depths.append(depth)
             masks.append(None if f is None else scene_mask(f, seg, cfg, depth))
             if depth is not None:

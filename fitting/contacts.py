@@ -314,9 +314,15 @@ def motion_noise(positions: np.ndarray) -> float:
 def smoothing_sigma(noise: float, target: float, most: float, fps: float) -> float:
     """Gaussian sigma (s) that brings white noise of ``noise`` (m) per frame down to
     ``target`` (m), at most ``most`` s: a Gaussian of σ frames divides white noise by
-    √(2√π σ)."""
+    √(2√π σ) (:func:`_smoothed_noise`)."""
     frames = (noise / target) ** 2 / (2 * np.sqrt(np.pi))
     return float(min(most, frames / fps))
+
+
+def _smoothed_noise(noise: float, sigma: float, fps: float) -> float:
+    """White noise (m per frame) left after a Gaussian of ``sigma`` s (:func:`smoothing_sigma`
+    inverted; a sigma under a frame's worth of the factor changes nothing)."""
+    return noise / float(np.sqrt(max(1.0, 2 * np.sqrt(np.pi) * sigma * fps)))
 
 
 def hysteresis(enter: np.ndarray, leave: np.ndarray, initial: bool = False) -> np.ndarray:
@@ -538,8 +544,7 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     noise = motion_noise(raw[:, :len(ids)])
     sigma = smoothing_sigma(noise, cfg.noise_target, cfg.smooth, fps)
     # what per-frame noise is left after that smoothing, against what the guards were made for
-    left = noise / np.sqrt(max(1.0, 2 * np.sqrt(np.pi) * sigma * fps))
-    guard = float(min(1.0, left / cfg.noise_target))
+    guard = min(1.0, _smoothed_noise(noise, sigma, fps) / cfg.noise_target)
     raw, thigh_v = raw[:, :len(ids)], _smooth(raw[:, len(ids):], sigma, fps)
     verts = _smooth(raw, sigma, fps)
 

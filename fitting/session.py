@@ -405,8 +405,7 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         for c in range(len(segs)):
             k = int(kinect.frame_table[r, c])
             f = stamps[c].get(int(track_stamps[c][k])) if k >= 0 else None
-            depths.append(None if f is None else f.depth_mm if fixes[c] is None
-                          else fixes[c](f.depth_mm))
+            depths.append(None if f is None else fixes[c](f.depth_mm))
             masks.append(None if f is None else f.person_reliable)
         clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
                                   time=float(kinect.time[r]), config=cloud))
