@@ -19,6 +19,8 @@ Public API so far (``couch-eval`` and its protocol are still to come):
   :class:`SynthesisResult`, :func:`yaw_transform`.
 - ``sampling.py``: :func:`sample_contacts` (ContactNet samples projected onto the chair).
 - ``export.py``: :func:`save_npz`, :func:`to_processed`, :func:`write_processed_sessions`.
+- ``precision.py``: :func:`packed_copy` (a network's large layers as fbgemm fp16 or int8 GEMMs
+  for inference; ``Synthesizer(precision=...)``), :data:`PRECISIONS`.
 - ``metrics.py``: ACE, AP@k, APD, contact APD, foot sliding, penetration, :func:`format_table`.
 """
 
@@ -54,12 +56,14 @@ from couch.synthesis.nets import (
     project_contacts,
     rollout,
 )
+from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.sampling import sample_contacts
 from couch.synthesis.train import TrainConfig, TrainResult, load_trained, train
 
 __all__ = [
     "LAYOUT",
     "METHODS",
+    "PRECISIONS",
     "ContactNet",
     "ContactNetConfig",
     "ControlNet",
@@ -69,6 +73,7 @@ __all__ = [
     "FeatureStats",
     "PoseNet",
     "PoseNetConfig",
+    "Precision",
     "Scene",
     "SequenceFeatures",
     "SequenceRef",
@@ -87,6 +92,7 @@ __all__ = [
     "foot_sliding",
     "format_table",
     "load_trained",
+    "packed_copy",
     "penetration",
     "pose_feature_apd",
     "project_contacts",

@@ -39,6 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from couch.synthesis.precision import PackedLinear, Precision
+
 __all__ = [
     "Activation",
     "Columns",
@@ -282,6 +284,19 @@ class ControlNet(nn.Module):
             self.c0: nn.Parameter | None = nn.Parameter(torch.randn(shape) * 0.01)
         else:
             self.h0 = self.c0 = None
+        #: the LSTM cells' [W_ih W_hh] as one packed matrix per layer (:meth:`pack`), or None
+        self.packed_cells: nn.ModuleList | None = None
+
+    def pack(self, precision: Precision) -> None:
+        """Run :meth:`step`'s LSTM cells in ``precision`` (see
+        :func:`couch.synthesis.precision.packed_copy`; inference only): each layer's input and
+        recurrent matrices as one packed GEMM over ``[x, h]``."""
+        self.packed_cells = nn.ModuleList(
+            PackedLinear(torch.cat([getattr(self.lstm, f"weight_ih_l{k}"),
+                                    getattr(self.lstm, f"weight_hh_l{k}")], dim=1),
+                         getattr(self.lstm, f"bias_ih_l{k}") + getattr(self.lstm, f"bias_hh_l{k}"),
+                         precision)
+            for k in range(self.config.lstm_layers))
 
     def initial_state(self, batch: int, device: torch.device | None = None,
                       dtype: torch.dtype | None = None) -> LSTMState:
@@ -289,7 +304,7 @@ class ControlNet(nn.Module):
         if self.h0 is not None and self.c0 is not None:
             return (self.h0.expand(-1, batch, -1).contiguous(),
                     self.c0.expand(-1, batch, -1).contiguous())
-        ref = self.head.weight
+        ref = self.lstm.weight_hh_l0
         shape = (self.config.lstm_layers, batch, self.config.lstm_hidden)
         z = torch.zeros(shape, device=device or ref.device, dtype=dtype or ref.dtype)
         return z, z.clone()
@@ -324,10 +339,13 @@ class ControlNet(nn.Module):
         h0, c0 = state
         hs, cs = [], []
         for layer in range(self.config.lstm_layers):
-            gates = (F.linear(x, getattr(self.lstm, f"weight_ih_l{layer}"),
-                              getattr(self.lstm, f"bias_ih_l{layer}"))
-                     + F.linear(h0[layer], getattr(self.lstm, f"weight_hh_l{layer}"),
-                                getattr(self.lstm, f"bias_hh_l{layer}")))
+            if self.packed_cells is not None:
+                gates = self.packed_cells[layer](torch.cat([x, h0[layer]], dim=-1))
+            else:
+                gates = (F.linear(x, getattr(self.lstm, f"weight_ih_l{layer}"),
+                                  getattr(self.lstm, f"bias_ih_l{layer}"))
+                         + F.linear(h0[layer], getattr(self.lstm, f"weight_hh_l{layer}"),
+                                    getattr(self.lstm, f"bias_hh_l{layer}")))
             i, f, g, o = gates.chunk(4, dim=-1)  # PyTorch's gate order
             c = torch.sigmoid(f) * c0[layer] + torch.sigmoid(i) * torch.tanh(g)
             x = torch.sigmoid(o) * torch.tanh(c)
@@ -583,6 +601,16 @@ class PoseNet(nn.Module):
             self.expert_biases.append(nn.Parameter(torch.zeros(k, fan_out)))
         self.expert_dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.expert_activation = _activation(config.activation)
+        #: each prediction layer's experts as one packed (K*out, in) matrix (:meth:`pack`)
+        self.packed_experts: nn.ModuleList | None = None
+
+    def pack(self, precision: Precision) -> None:
+        """Run the experts in ``precision`` (see :func:`couch.synthesis.precision.packed_copy`;
+        inference only)."""
+        with torch.no_grad():
+            self.packed_experts = nn.ModuleList(
+                PackedLinear(w.permute(1, 0, 2).reshape(w.shape[1], -1).T, None, precision)
+                for w in self.expert_weights)
 
     @staticmethod
     def _gather(values: Mapping[str, Tensor], dims: Mapping[str, int], what: str) -> list[Tensor]:
@@ -644,7 +672,9 @@ class PoseNet(nn.Module):
             # blended weights (:meth:`blend`), but one GEMM over the batch instead of a (B, in,
             # out) weight tensor per sample, which dominated the runtime's cost at batch 64.
             k, _, fan_out = w.shape
-            per_expert = (x @ self._flat(i, w)).view(-1, k, fan_out)  # (B, K, out)
+            flat = (self.packed_experts[i](x) if self.packed_experts is not None
+                    else x @ self._flat(i, w))
+            per_expert = flat.view(-1, k, fan_out)  # (B, K, out)
             x = torch.einsum("bk,bko->bo", coefficients, per_expert) + coefficients @ b
             if i < last:
                 x = self.expert_activation(x)

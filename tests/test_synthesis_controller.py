@@ -188,6 +188,7 @@ def test_cli_writes_motion_schema_and_preview(ci_run, chair, tmp_path, capsys):
     (["--contacts", "0,0,0"], "left;right"),
     (["--start", "0,1"], "--start"),
     (["--seconds", "0"], "--seconds"),
+    (["--precision", "bf16"], "invalid choice: 'bf16'"),
 ])
 def test_cli_bad_arguments(ci_run, chair, tmp_path, capsys, args, message):
     mesh = save_mesh(tmp_path / "c.obj", chair[0], chair[1])

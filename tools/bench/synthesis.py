@@ -11,7 +11,12 @@ Without ``--run`` it first trains a throwaway run (not timed): the ``paper`` pre
 sizes for one epoch on two simulated sequences, so the timing is that of the paper's networks
 (speed does not depend on how well they are trained).
 
-Run: ``python -m couch.tools.bench.synthesis [--run RUN] [--batch 64] [--seconds 4]``.
+Each weight precision of the runtime (``Synthesizer(precision=...)``: fp32 as trained, fp16,
+int8; ``--precision`` picks some) is timed, and the largest joint difference its motion has from
+the fp32 motion is printed beside it.
+
+Run: ``python -m couch.tools.bench.synthesis [--run RUN] [--batch 64] [--seconds 4]
+[--precision fp32,fp16,int8] [--threads 1]``.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import time
 import numpy as np
 import torch
 
-from couch.synthesis import Scene, Synthesizer, train
+from couch.synthesis import PRECISIONS, Scene, Synthesizer, train
 from couch.tools.sim.chairs import make_chair, random_chair_spec
 from couch.tools.sim.session import simulate_motion_dataset
 
@@ -43,26 +48,42 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--seconds", type=float, default=4.0, help="synthesised seconds per run")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--precision", default=",".join(PRECISIONS),
+                    help="comma-separated runtime weight precisions to time")
     args = ap.parse_args(argv)
+    precisions = [p.strip() for p in args.precision.split(",") if p.strip()]
+    bad = [p for p in precisions if p not in PRECISIONS]
+    if bad:
+        ap.error(f"unknown precision(s) {bad}; choose from {', '.join(PRECISIONS)}")
     torch.set_num_threads(args.threads)
+    chair = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
+    left = np.asarray(chair.landmarks.left_armrest)
+    series = np.array([[left, [np.nan] * 3]])
     with tempfile.TemporaryDirectory() as tmp:
         run = args.run or _throwaway_run(tmp)
-        syn = Synthesizer(run, args.method, hand_ik=args.hand_ik)
-        chair = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
-        scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
-        left = np.asarray(chair.landmarks.left_armrest)
-        series = np.array([[left, [np.nan] * 3]])
-        print(f"run {run} ({syn.method}); {args.seconds:g} s per run, {args.threads} thread(s)")
-        syn.synthesize(scene, np.array([[0.2, 1.0, np.pi]]), series, 0.5)  # warm-up
-        for batch in (1, args.batch):
-            starts = np.tile([0.2, 1.0, np.pi], (batch, 1))
-            t0 = time.perf_counter()
-            r = syn.synthesize(scene, starts, series, args.seconds)
-            dt = time.perf_counter() - t0
-            assert r.control_on[..., 0].mean() > 0.5 or args.method == "baseline"
-            fps = batch * r.num_frames / dt
-            print(f"batch {batch:3d}: {fps:8.0f} frames/s = {fps / syn.cfg.fps:6.1f}x real time "
-                  f"({dt:.2f} s for {r.num_frames} frames)")
+        print(f"run {run} ({args.method}); {args.seconds:g} s per run, {args.threads} thread(s)")
+        reference = None
+        for precision in precisions:
+            syn = Synthesizer(run, args.method, hand_ik=args.hand_ik, precision=precision)
+            scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
+            syn.synthesize(scene, np.array([[0.2, 1.0, np.pi]]), series, 0.5)  # warm-up
+            for batch in (1, args.batch):
+                starts = np.tile([0.2, 1.0, np.pi], (batch, 1))
+                t0 = time.perf_counter()
+                r = syn.synthesize(scene, starts, series, args.seconds)
+                dt = time.perf_counter() - t0
+                assert r.control_on[..., 0].mean() > 0.5 or args.method == "baseline"
+                fps = batch * r.num_frames / dt
+                diff = ""
+                if batch == 1:
+                    if precision == "fp32":
+                        reference = r.joints
+                    elif reference is not None:
+                        diff = (f"; joints within {100 * np.abs(r.joints - reference).max():.2f}"
+                                f" cm of fp32's")
+                print(f"{precision} batch {batch:3d}: {fps:8.0f} frames/s = "
+                      f"{fps / syn.cfg.fps:6.1f}x real time ({dt:.2f} s for {r.num_frames} "
+                      f"frames){diff}")
 
 
 if __name__ == "__main__":
