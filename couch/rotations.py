@@ -200,6 +200,9 @@ def matrix_to_6d(m: Array) -> Array:
     return torch.cat([m[..., :, 0], m[..., :, 1]], dim=-1)
 
 
+_YZX, _ZXY = [1, 2, 0], [2, 0, 1]
+
+
 def sixd_to_matrix(d6: Array) -> Array:
     """``(..., 6)`` → ``(..., 3, 3)`` by Gram-Schmidt; any non-degenerate 6-vector is valid."""
     if isinstance(d6, np.ndarray):
@@ -207,7 +210,12 @@ def sixd_to_matrix(d6: Array) -> Array:
         b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
         b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
         b2 = b2 / np.linalg.norm(b2, axis=-1, keepdims=True)
-        return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
+        out = np.empty((*d6.shape[:-1], 3, 3), np.result_type(d6, np.float32))
+        out[..., 0], out[..., 1] = b1, b2
+        # b1 x b2 written out: np.cross's axis handling costs more than the arithmetic on the
+        # runtime's one-character arrays, where this is called every frame
+        out[..., 2] = b1[..., _YZX] * b2[..., _ZXY] - b1[..., _ZXY] * b2[..., _YZX]
+        return out
     _check_torch(d6, (6,))
     a1, a2 = d6[..., :3], d6[..., 3:]
     b1 = torch.nn.functional.normalize(a1, dim=-1)

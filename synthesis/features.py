@@ -21,6 +21,7 @@ Hand order is always (left, right).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -499,15 +500,19 @@ class OccupancyGrid:
         return occ.astype(np.float32).reshape(shape_in)
 
 
+@functools.lru_cache(maxsize=8)
 def ego_cell_centres(cfg: FeatureConfig) -> np.ndarray:
     """(rings·sectors·layers, 3) cylinder cell centres in the root frame (ring slowest, then
     sector, then layer). Sector s is centred at the angle (s + 0.5)·2π/sectors from +z (forward)
-    towards +x (the body's left); layers run up from the floor."""
+    towards +x (the body's left); layers run up from the floor. Cached per configuration (the
+    runtime asks every frame) and read-only."""
     r = (np.arange(cfg.ego_rings) + 0.5) * cfg.ego_radius / cfg.ego_rings
     a = (np.arange(cfg.ego_sectors) + 0.5) * 2 * np.pi / cfg.ego_sectors
     h = (np.arange(cfg.ego_layers) + 0.5) * cfg.ego_height / cfg.ego_layers
     rr, aa, hh = np.meshgrid(r, a, h, indexing="ij")
-    return np.stack([rr * np.sin(aa), hh, rr * np.cos(aa)], -1).reshape(-1, 3)
+    cells = np.stack([rr * np.sin(aa), hh, rr * np.cos(aa)], -1).reshape(-1, 3)
+    cells.flags.writeable = False
+    return cells
 
 
 def ego_features(grid: OccupancyGrid, root: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
