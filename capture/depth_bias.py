@@ -46,6 +46,13 @@ class DepthBias:
     pixels: int
     rms: float
 
+    def report(self) -> dict[str, float]:
+        """The error as a QA record: offset and radial term in mm, scale in parts per
+        thousand, the floor pixels and their residual (mm)."""
+        return {"offset_mm": 1e3 * self.offset, "scale_ppt": 1e3 * self.scale,
+                "radial_mm": 1e3 * self.radial, "pixels": float(self.pixels),
+                "rms_mm": 1e3 * self.rms}
+
     def corrector(self, calib: KinectCalibration) -> Callable[[np.ndarray], np.ndarray]:
         """A function taking (H,W) uint16 mm depth of this camera to the depth with the error
         taken out (0 stays 0); the per-pixel terms are computed once, here."""

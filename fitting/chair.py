@@ -384,6 +384,7 @@ class ChairClouds:
             chamfer).
         warnings: skipped captures per camera.
         depth_bias: per camera, the depth error taken out of its depth (None: not measured).
+        serials: the cameras' serials, in that order.
     """
 
     session: Path
@@ -393,6 +394,7 @@ class ChairClouds:
     views: list[CameraView]
     warnings: list[str]
     depth_bias: list[DepthBias | None] = dataclasses.field(default_factory=list)
+    serials: list[str] = dataclasses.field(default_factory=list)
 
 
 def scene_mask(frame: FrameSegmentation, segmentation: CameraSegmentation,
@@ -512,7 +514,8 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                         fd.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
                         depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
                         max_incidence_deg=80.0) for s, fd in zip(segs, far, strict=True)]
-    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings, biases)
+    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings, biases,
+                       list(serials))
 
 
 # --------------------------------------------------------------------------- registration
@@ -943,6 +946,9 @@ class ChairRegistration:
             rotation from the chosen one (deg).
         seconds: wall time per step.
         warnings: what may be wrong.
+        depth_errors: serial -> the depth error measured on the floor and taken out of that
+            camera's depth before registering (:meth:`DepthBias.report`); a camera that saw
+            too little floor is missing (and named in ``warnings``).
     """
 
     scan: Path | None
@@ -966,6 +972,7 @@ class ChairRegistration:
     ambiguity_deg: list[float]
     seconds: dict[str, float]
     warnings: list[str]
+    depth_errors: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
 
     @property
     def moved(self) -> bool:
@@ -1022,10 +1029,14 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     t0 = wallclock.perf_counter()
     if not isinstance(scan, ChairScan):
         scan = load_scan(scan, cfg)
+    depth_errors: dict[str, dict[str, float]] = {}
     if isinstance(clouds, ChairClouds):
         views = clouds.views if views is None else views
         frames, times, cl = clouds.frames, clouds.time, list(clouds.clouds)
         where = str(clouds.session)
+        names = clouds.serials or [f"camera {k}" for k in range(len(clouds.depth_bias))]
+        depth_errors = {name: bias.report() for name, bias
+                        in zip(names, clouds.depth_bias, strict=True) if bias is not None}
     else:
         cl = list(clouds)
         frames, times = np.arange(len(cl)), np.array([c.time for c in cl], np.float64)
@@ -1178,7 +1189,7 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
         rotation_spread_deg=main.rotation_spread_deg,
         translation_spread_mm=main.translation_spread_mm, chamfer=main.chamfer,
         ambiguous=bool(ambiguity), ambiguity_deg=list(ambiguity), seconds=sec,
-        warnings=warnings)
+        warnings=warnings, depth_errors=depth_errors)
 
 
 def register_session_chair(session_dir: str | os.PathLike,

@@ -26,12 +26,14 @@ import pytest
 
 import couch
 from couch.body.skeleton import CONTACT_NAMES
+from couch.capture.azure_mkv import open_azure_mkv
 from couch.fitting.metrics import mpjpe
 from couch.fitting.pipeline import STAGES, ProcessError, run_pipeline
 from couch.geometry import apply_transform
 from couch.schema import read_processed
 from couch.tools.bench import accuracy
 from couch.tools.bench.accuracy import SessionAccuracy, session_accuracy, truth_from_ours
+from couch.tools.sim import kinect
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_fixture"
 
@@ -129,6 +131,24 @@ def test_report_is_written(run):
         assert (report.parent / png).stat().st_size > 1000
         assert png in html
     assert list((report.parent / "previews").glob("*.png"))
+
+
+def test_report_gives_each_cameras_depth_error(run, truth):
+    """summary.json's chair section holds the depth error measured on each camera's floor view
+    (and taken out of its depth): it matches the simulator's device error, the depth each
+    camera's floor is seen at (offset + scale * 2.5 m, on the optical axis) within 1 mm."""
+    summary = json.loads((run.report.parent / "summary.json").read_text())
+    errors = summary["chair"]["depth_errors"]
+    noise = kinect.DepthNoise(**truth[1]["depth_noise"])
+    assert sorted(errors) == sorted(c["serial"] for c in truth[1]["cameras"])
+    for serial, e in errors.items():
+        calib = open_azure_mkv(FIXTURE / "kinect" / f"{serial}.mkv").calibration
+        offset, scale, _ = kinect.device_depth_bias(calib, noise)
+        at = 2.5
+        true_mm, got_mm = (offset + scale * at) * 1e3, e["offset_mm"] + e["scale_ppt"] * at
+        print(f"camera {serial}: true {true_mm:+.2f} mm at {at} m, measured {got_mm:+.2f} mm "
+              f"(rms {e['rms_mm']:.2f} mm on {e['pixels']:.0f} floor pixels)")
+        assert abs(got_mm - true_mm) < 1.0 and e["pixels"] > 500 and 0 < e["rms_mm"] < 10
 
 
 def test_rerun_resumes_from_the_cache(run, tmp_path):

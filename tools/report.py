@@ -175,6 +175,7 @@ def _chair_summary(chair: ChairRegistration | None) -> dict[str, Any] | None:
         "ambiguous": bool(chair.ambiguous),
         "ambiguity_deg": list(chair.ambiguity_deg),
         "moved": bool(chair.moved),
+        "depth_errors": chair.depth_errors,
     }
 
 
