@@ -87,8 +87,10 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     table = (tmp_path / "eval.md").read_text()
     assert "| couch |" in table and "| couch+ik |" in table and "| baseline |" in table
-    rows = json.loads((tmp_path / "eval.json").read_text())["rows"]
-    assert set(rows) == {"couch", "couch+ik", "baseline"}
+    assert "fp32 weights" in table.splitlines()[0]  # the runtime precision is stated
+    doc = json.loads((tmp_path / "eval.json").read_text())
+    assert set(doc["rows"]) == {"couch", "couch+ik", "baseline"}
+    assert doc["settings"]["precision"] == "fp32"
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

@@ -105,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in vars(args).items() if k not in ("output", "quiet")}
     header = (f"couch-eval: {len(chairs)} chairs x {args.trials} trials x {args.seconds:g} s "
-              f"(seed {args.seed}), {time.perf_counter() - t0:.0f} s\n\n")
+              f"(seed {args.seed}, {args.precision} weights), {time.perf_counter() - t0:.0f} s\n\n")
     with atomic_path(out / "eval.md") as tmp:
         tmp.write_text(header + table + "\n")
     with atomic_path(out / "eval.json") as tmp:
