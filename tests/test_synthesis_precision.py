@@ -101,9 +101,9 @@ def test_packed_control_net_step_matches_fp32(precision):
 def test_small_layers_stay_fp32():
     net = _pose_net()
     fast = packed_copy(net, "fp16", min_size=64 * 64)
-    widths = {type(m).__name__ for m in fast.encoders["JT"].modules()}
+    kinds = {type(m).__name__ for m in fast.encoders["JT"].modules()}
     # JT's 40 x 64 input layer is below the limit, its 64 x 64 layer is not
-    assert {"Linear", "PackedLinear"} <= widths
+    assert {"Linear", "PackedLinear"} <= kinds
     assert packed_copy(net, "fp32") is net
     with pytest.raises(ValueError, match="unknown precision 'bf16'"):
         packed_copy(net, "bf16")
@@ -116,6 +116,10 @@ def test_synthesizer_in_fp16_follows_fp32(ci_run):
     runs = {}
     for precision in ("fp32", "fp16"):
         syn = Synthesizer(ci_run.run_dir, "couch", precision=precision)
+        # the ci nets' layers are all small: only the experts and LSTM cells are packed
+        packed = (syn.pose_net.packed_experts is not None,
+                  syn.control_net.packed_cells is not None)
+        assert packed == ((True, True) if precision == "fp16" else (False, False))
         scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
         runs[precision] = syn.synthesize(scene, starts, series, seconds=1.5)
     assert runs["fp32"].control_on.any()
