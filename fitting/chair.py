@@ -1034,9 +1034,10 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
         views = clouds.views if views is None else views
         frames, times, cl = clouds.frames, clouds.time, list(clouds.clouds)
         where = str(clouds.session)
-        names = clouds.serials or [f"camera {k}" for k in range(len(clouds.depth_bias))]
-        depth_errors = {name: bias.report() for name, bias
-                        in zip(names, clouds.depth_bias, strict=True) if bias is not None}
+        if clouds.depth_bias:  # clouds made by chair_clouds carry one per camera
+            names = clouds.serials or [f"camera {k}" for k in range(len(clouds.depth_bias))]
+            depth_errors = {name: bias.report() for name, bias
+                            in zip(names, clouds.depth_bias, strict=True) if bias is not None}
     else:
         cl = list(clouds)
         frames, times = np.arange(len(cl)), np.array([c.time for c in cl], np.float64)
