@@ -609,7 +609,7 @@ class PoseNet(nn.Module):
         inference only)."""
         with torch.no_grad():
             self.packed_experts = nn.ModuleList(
-                PackedLinear(w.permute(1, 0, 2).reshape(w.shape[1], -1).T, None, precision)
+                PackedLinear(self._as_one(w).T, None, precision)
                 for w in self.expert_weights)
 
     @staticmethod
@@ -645,17 +645,21 @@ class PoseNet(nn.Module):
                  coefficients @ b)
                 for w, b in zip(self.expert_weights, self.expert_biases, strict=True)]
 
+    @staticmethod
+    def _as_one(w: Tensor) -> Tensor:
+        """Expert weights (K, in, out) as one (in, K*out) matrix, so that all K experts run as
+        a single GEMM (expert k's outputs are columns k*out to (k+1)*out)."""
+        return w.permute(1, 0, 2).reshape(w.shape[1], -1)
+
     def _flat(self, layer: int, w: Tensor) -> Tensor:
-        """Expert weights (K, in, out) of ``layer`` as one (in, K*out) matrix, so that all K
-        experts run as a single GEMM. Cached for inference (no grad) until the weights change
-        (in place or replaced); rebuilt, and differentiable, while training."""
+        """:meth:`_as_one` of ``layer``'s experts, cached for inference (no grad) until the
+        weights change (in place or replaced); rebuilt, and differentiable, while training."""
         if torch.is_grad_enabled() and w.requires_grad:
-            return w.permute(1, 0, 2).reshape(w.shape[1], -1)
+            return self._as_one(w)
         key = (w.data_ptr(), w._version, w.device, w.dtype)
         cache = self.__dict__.setdefault("_flat_cache", {})
         if cache.get(layer, (None,))[0] != key:
-            cache[layer] = (key, w.detach().permute(1, 0, 2).reshape(w.shape[1], -1)
-                            .contiguous())
+            cache[layer] = (key, self._as_one(w.detach()).contiguous())
         return cache[layer][1]
 
     def forward(self, inputs: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
