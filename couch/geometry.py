@@ -19,7 +19,9 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """``(..., 3, 3)`` rotation and ``(..., 3)`` translation → ``(..., 4, 4)`` transform."""
     rotation = np.asarray(rotation, dtype=np.float64)
     translation = np.asarray(translation, dtype=np.float64)
-    lead = np.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    lead = rotation.shape[:-2]
+    if lead != translation.shape[:-1]:  # broadcast_shapes costs more than the rest per call
+        lead = np.broadcast_shapes(lead, translation.shape[:-1])
     out = np.zeros((*lead, 4, 4))
     out[..., :3, :3] = rotation
     out[..., :3, 3] = translation

@@ -207,9 +207,10 @@ def sixd_to_matrix(d6: Array) -> Array:
     """``(..., 6)`` → ``(..., 3, 3)`` by Gram-Schmidt; any non-degenerate 6-vector is valid."""
     if isinstance(d6, np.ndarray):
         a1, a2 = d6[..., :3], d6[..., 3:]
-        b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+        # sqrt of the sum of squares: np.linalg.norm's dispatch costs more than its maths here
+        b1 = a1 / np.sqrt((a1 * a1).sum(-1, keepdims=True))
         b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
-        b2 = b2 / np.linalg.norm(b2, axis=-1, keepdims=True)
+        b2 = b2 / np.sqrt((b2 * b2).sum(-1, keepdims=True))
         out = np.empty((*d6.shape[:-1], 3, 3), np.result_type(d6, np.float32))
         out[..., 0], out[..., 1] = b1, b2
         # b1 x b2 written out: np.cross's axis handling costs more than the arithmetic on the

@@ -56,7 +56,7 @@ from couch.synthesis.features import (
 )
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
-from couch.synthesis.train import load_trained, pose_inputs
+from couch.synthesis.train import ENCODER_GROUPS, GATING_GROUPS, load_trained
 
 __all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"]
 
@@ -66,6 +66,14 @@ HAND_REACH_X = 0.25
 
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
+
+#: PoseNet's predictions the loop reads. The others (future goals, joint positions a second
+#: ahead) are training targets only: their columns are cut from the last expert layer at load
+#: (:meth:`PoseNet.select_outputs`), which the runtime would otherwise read every frame.
+READ_OUTPUTS: tuple[str, ...] = (
+    "next_joint_positions", "next_joint_rotations", "next_joint_velocities",
+    "future_trajectory", "global_phase_update", "goal_relative_root", "next_contacts",
+    "root_update")
 
 
 def yaw_transform(x: float | np.ndarray, z: float | np.ndarray,
@@ -229,6 +237,7 @@ class _State:
     since: np.ndarray  # (B,) frames since that set became active
     held: np.ndarray  # (B,) frames all its hands have been within reach
     ik_offset: np.ndarray | None = None  # (B,22,3) world displacement hand IK gave last frame
+    hands: np.ndarray | None = None  # (B,2,3) world hand joints of the current pose
 
 
 class Synthesizer:
@@ -277,10 +286,13 @@ class Synthesizer:
         net = "pose" if method == "couch" else "baseline"
         self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which, device)
         self.precision = precision
-        self.pose_net = packed_copy(self.pose_net, precision)
         self.cfg = feature_config_from_json(json.dumps(meta["feature_config"]))
         self.groups_in, self.groups_out = list(meta["groups_in"]), list(meta["groups_out"])
         self.widths = {g: int(self.pose_stats.mean[g].size) for g in self.groups_out}
+        self._setup_io(net)
+        self.pose_net = packed_copy(self.pose_net, precision)
+        offsets = self.cfg.trajectory_offsets
+        self._past_offsets = offsets[offsets < 0]  # the trajectory's past samples (frames)
         self.control_net = None
         if method == "couch":
             self.control_net, self.control_stats, _ = load_trained(run_dir, "control", which,
@@ -290,6 +302,38 @@ class Synthesizer:
         self.blend_radius, self.walk_radius = blend_radius, walk_radius
         self.hand_ik = hand_ik
         self._body_setup()
+
+    def _setup_io(self, net: str) -> None:
+        """PoseNet's input and output plumbing, once: per encoder input (and gating feature)
+        its groups with their normalisation concatenated, and the read predictions' columns
+        (the others cut from the net) with their denormalisation."""
+        stats = self.pose_stats
+        inputs = {**ENCODER_GROUPS[net], **{g: (g,) for g in GATING_GROUPS[net]}}
+        self._inputs = {name: (names, np.concatenate([stats.mean[g] for g in names]),
+                               np.concatenate([stats.std[g] for g in names]))
+                        for name, names in inputs.items()}
+        ends = dict(zip(self.groups_out, np.cumsum([self.widths[g] for g in self.groups_out]),
+                        strict=True))
+        read = [g for g in self.groups_out if g in READ_OUTPUTS]
+        columns: list[int] = []
+        self._outputs: dict[str, slice] = {}
+        for g in read:
+            self._outputs[g] = slice(len(columns), len(columns) + self.widths[g])
+            columns.extend(range(int(ends[g]) - self.widths[g], int(ends[g])))
+        self.pose_net.select_outputs(columns)
+        self._out_mean = np.concatenate([stats.mean[g] for g in read])
+        self._out_std = np.concatenate([stats.std[g] for g in read])
+
+    def _pose_inputs(self, groups: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        """PoseNet's normalised inputs (:func:`couch.synthesis.train.pose_inputs` of the
+        normalised groups) from the raw feature groups, each (B, ...)."""
+        batch = len(next(iter(groups.values())))
+        out = {}
+        for name, (names, mean, std) in self._inputs.items():
+            x = np.concatenate([groups[g].reshape(batch, -1) for g in names], -1)
+            out[name] = torch.as_tensor(((x - mean) / std).astype(np.float32),
+                                        device=self.device)
+        return out
 
     # ------------------------------------------------------------------ body helpers
 
@@ -359,7 +403,7 @@ class Synthesizer:
         walk = np.broadcast_to(np.eye(3)[1], (batch, len(fut), 3))
         future = np.concatenate([relative_root(root[:, None], future_root), walk], -1)
         idle = np.broadcast_to(np.eye(3)[0], (batch, h, 3)).copy()
-        return _State(
+        state = _State(
             root=root, goal=goal,
             jpos=np.broadcast_to(self.init_jpos, (batch, *self.init_jpos.shape)).copy(),
             jrot=np.broadcast_to(self.init_jrot, (batch, *self.init_jrot.shape)).copy(),
@@ -370,6 +414,8 @@ class Synthesizer:
             c_phase=np.zeros((batch, 2, cfg.control_samples)), on=np.zeros((batch, 2), bool),
             lstm=None, index=np.zeros(batch, np.int64), since=np.zeros(batch, np.int64),
             held=np.zeros(batch, np.int64))
+        state.hands = self._hands(root, state.jpos, state.jrot)
+        return state
 
     def _norm(self, stats, groups: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {g: torch.as_tensor(stats.normalize(g, x.reshape(len(x), -1)).astype(np.float32),
@@ -386,8 +432,7 @@ class Synthesizer:
         straight = control_line(hands, np.where(mask[..., None], targets, 0.0), mask, s.root,
                                 cfg.control_samples)
         line = np.where(fresh[..., None, None], straight, s.line) * mask[..., None, None]
-        offsets = cfg.trajectory_offsets
-        past = s.hist_hphase[:, s.hist_hphase.shape[1] + offsets[offsets < 0]]
+        past = s.hist_hphase[:, s.hist_hphase.shape[1] + self._past_offsets]
         hphase = np.concatenate([past.transpose(0, 2, 1), s.c_phase], -1)  # (B,2,13)
         hphase = hphase * mask[..., None]
         if s.lstm is None:
@@ -416,8 +461,7 @@ class Synthesizer:
         them (:func:`couch.synthesis.features.sequence_features`), each (B, ...)."""
         cfg, batch = self.cfg, len(s.root)
         # T: past samples from the history, the present and future from the last prediction.
-        past = cfg.trajectory_offsets < 0
-        past_idx = s.hist_root.shape[1] + cfg.trajectory_offsets[past]
+        past_idx = s.hist_root.shape[1] + self._past_offsets
         past_roots = s.hist_root[:, past_idx]
         traj = np.concatenate([
             np.concatenate([relative_root(s.root[:, None], past_roots),
@@ -460,7 +504,7 @@ class Synthesizer:
         has = np.all(np.isfinite(targets), -1)
         mask = has & control_near(s.root, np.where(has[..., None], targets, np.inf),
                                   cfg.control_radius)
-        hands = self._hands(s.root, s.jpos, s.jrot)
+        hands = s.hands
         safe = np.where(mask[..., None], targets, 0.0)
 
         groups = self._state_features(scene, s)
@@ -473,16 +517,10 @@ class Synthesizer:
             rel = np.where(mask[..., None], to_root(safe, s.root), 0.0)
             groups["contact_inputs"] = np.concatenate([rel.reshape(batch, 6), mask], -1)
             hand_phase = mask.astype(np.float64)
-        x = self._norm(self.pose_stats, {g: groups[g] for g in self.groups_in})
         with torch.no_grad():
-            pred, _ = self.pose_net(pose_inputs(x, "pose" if self.method == "couch"
-                                                else "baseline"))
-        pred = pred.cpu().numpy().astype(np.float64)
-        out, start = {}, 0
-        for g in self.groups_out:
-            w = self.widths[g]
-            out[g] = self.pose_stats.denormalize(g, pred[:, start:start + w])
-            start += w
+            pred, _ = self.pose_net(self._pose_inputs(groups))
+        pred = pred.cpu().numpy().astype(np.float64) * self._out_std + self._out_mean
+        out = {g: pred[:, columns] for g, columns in self._outputs.items()}
 
         # Advance: history, root, J, trajectory, phase.
         s.hist_root = np.concatenate([s.hist_root[:, 1:], s.root[:, None]], 1)
@@ -526,7 +564,7 @@ class Synthesizer:
         s.on = mask
 
         # Series: the next contact set once this one was held (or timed out).
-        new_hands = self._hands(s.root, s.jpos, s.jrot)
+        new_hands = s.hands = self._hands(s.root, s.jpos, s.jrot)
         close = np.linalg.norm(new_hands - safe, axis=-1) <= self.reach
         all_close = mask.any(-1) & np.all(close | ~mask, -1)
         s.held = np.where(all_close, s.held + 1, s.held)

@@ -179,6 +179,14 @@ def mlp(sizes: Sequence[int], activation: Activation = "elu", dropout: float = 0
     return nn.Sequential(*layers)
 
 
+def run_layers(seq: nn.Sequential, x: Tensor) -> Tensor:
+    """``seq(x)``, calling each layer's ``forward`` directly. Module calls dispatch hooks (none
+    are used here): at batch 1 the runtime's ~60 of them a frame cost ~5 % of its time."""
+    for layer in seq:
+        x = layer.forward(x)
+    return x
+
+
 def linear_widths(net: nn.Module) -> list[int]:
     """Output widths of the Linear layers of ``net`` in order (for summaries and tests)."""
     return [m.out_features for m in net.modules() if isinstance(m, nn.Linear)]
@@ -335,12 +343,13 @@ class ControlNet(nn.Module):
         """
         if state is None:
             state = self.initial_state(pose.shape[0], pose.device, pose.dtype)
-        x = torch.cat([self.pose_encoder(pose), self.control_encoder(control)], dim=-1)
+        x = torch.cat([run_layers(self.pose_encoder, pose),
+                       run_layers(self.control_encoder, control)], dim=-1)
         h0, c0 = state
         hs, cs = [], []
         for layer in range(self.config.lstm_layers):
             if self.packed_cells is not None:
-                gates = self.packed_cells[layer](torch.cat([x, h0[layer]], dim=-1))
+                gates = self.packed_cells[layer].forward(torch.cat([x, h0[layer]], dim=-1))
             else:
                 gates = (F.linear(x, getattr(self.lstm, f"weight_ih_l{layer}"),
                                   getattr(self.lstm, f"bias_ih_l{layer}"))
@@ -351,7 +360,7 @@ class ControlNet(nn.Module):
             x = torch.sigmoid(o) * torch.tanh(c)
             hs.append(x)
             cs.append(c)
-        return self.head(x), (torch.stack(hs), torch.stack(cs))
+        return self.head.forward(x), (torch.stack(hs), torch.stack(cs))
 
 
 def scheduled_sampling_probability(epoch: float, config: ControlNetConfig | None = None) -> float:
@@ -601,16 +610,32 @@ class PoseNet(nn.Module):
             self.expert_biases.append(nn.Parameter(torch.zeros(k, fan_out)))
         self.expert_dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.expert_activation = _activation(config.activation)
-        #: each prediction layer's experts as one packed (K*out, in) matrix (:meth:`pack`)
+        #: each prediction layer's experts as one packed (out, K*in) matrix (:meth:`pack`)
         self.packed_experts: nn.ModuleList | None = None
 
     def pack(self, precision: Precision) -> None:
         """Run the experts in ``precision`` (see :func:`couch.synthesis.precision.packed_copy`;
-        inference only)."""
+        inference only): each prediction layer's K experts as one packed (out, K*in) matrix."""
         with torch.no_grad():
             self.packed_experts = nn.ModuleList(
-                PackedLinear(self._as_one(w).T, None, precision)
-                for w in self.expert_weights)
+                PackedLinear(self._stacked(w).T, None, precision) for w in self.expert_weights)
+
+    def select_outputs(self, columns: Sequence[int]) -> None:
+        """Keep only the output ``columns`` (inference only, in place; before :meth:`pack`):
+        the last prediction layer's experts lose the other columns, so :meth:`forward` returns
+        (B, len(columns)) in the given order. A runtime that reads part of the prediction
+        (the controller does not read the future goals or joints) reads fewer weights."""
+        cols = torch.as_tensor(list(columns), dtype=torch.long)
+        if cols.numel() == 0 or int(cols.min()) < 0 or int(cols.max()) >= self.out_dim:
+            raise ValueError(f"output columns must lie in [0, {self.out_dim}), got "
+                             f"{len(cols)} columns")
+        if self.packed_experts is not None:
+            raise RuntimeError("select_outputs must come before pack")
+        with torch.no_grad():
+            w, b = self.expert_weights[-1], self.expert_biases[-1]
+            self.expert_weights[-1] = nn.Parameter(w[..., cols].contiguous(), requires_grad=False)
+            self.expert_biases[-1] = nn.Parameter(b[..., cols].contiguous(), requires_grad=False)
+        self.out_dim = len(cols)
 
     @staticmethod
     def _gather(values: Mapping[str, Tensor], dims: Mapping[str, int], what: str) -> list[Tensor]:
@@ -627,13 +652,13 @@ class PoseNet(nn.Module):
     def encode(self, inputs: Mapping[str, Tensor]) -> Tensor:
         """Encoded groups concatenated: (B, sum of the encoders' last widths)."""
         groups = self._gather(inputs, self.inputs, "input group")
-        return torch.cat([self.encoders[name](x) for name, x in
+        return torch.cat([run_layers(self.encoders[name], x) for name, x in
                           zip(self.inputs, groups, strict=True)], dim=-1)
 
     def gate(self, inputs: Mapping[str, Tensor]) -> Tensor:
         """Expert coefficients (B, K): softmax of the gating network, non-negative, sum 1."""
         g = torch.cat(self._gather(inputs, self.gating_inputs, "gating feature"), dim=-1)
-        return torch.softmax(self.gating(g), dim=-1)
+        return torch.softmax(run_layers(self.gating, g), dim=-1)
 
     def blend(self, coefficients: Tensor) -> list[tuple[Tensor, Tensor]]:
         """Per-sample blended weights of each prediction layer.
@@ -646,21 +671,10 @@ class PoseNet(nn.Module):
                 for w, b in zip(self.expert_weights, self.expert_biases, strict=True)]
 
     @staticmethod
-    def _as_one(w: Tensor) -> Tensor:
-        """Expert weights (K, in, out) as one (in, K*out) matrix, so that all K experts run as
-        a single GEMM (expert k's outputs are columns k*out to (k+1)*out)."""
-        return w.permute(1, 0, 2).reshape(w.shape[1], -1)
-
-    def _flat(self, layer: int, w: Tensor) -> Tensor:
-        """:meth:`_as_one` of ``layer``'s experts, cached for inference (no grad) until the
-        weights change (in place or replaced); rebuilt, and differentiable, while training."""
-        if torch.is_grad_enabled() and w.requires_grad:
-            return self._as_one(w)
-        key = (w.data_ptr(), w._version, w.device, w.dtype)
-        cache = self.__dict__.setdefault("_flat_cache", {})
-        if cache.get(layer, (None,))[0] != key:
-            cache[layer] = (key, self._as_one(w.detach()).contiguous())
-        return cache[layer][1]
+    def _stacked(w: Tensor) -> Tensor:
+        """Expert weights (K, in, out) as one (K*in, out) matrix, experts stacked along the
+        input (rows k*in to (k+1)*in are expert k's): a view, no copy."""
+        return w.reshape(-1, w.shape[-1])
 
     def forward(self, inputs: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
         """inputs: name -> (B, dim) for every input group and gating feature.
@@ -671,17 +685,19 @@ class PoseNet(nn.Module):
         x = self.encode(inputs)
         last = len(self.expert_weights) - 1
         for i, (w, b) in enumerate(zip(self.expert_weights, self.expert_biases, strict=True)):
-            x = self.expert_dropout(x)
-            # sum_k c_k (x W_k + b_k) = x (sum_k c_k W_k) + sum_k c_k b_k: the same as running the
-            # blended weights (:meth:`blend`), but one GEMM over the batch instead of a (B, in,
-            # out) weight tensor per sample, which dominated the runtime's cost at batch 64.
-            k, _, fan_out = w.shape
-            flat = (self.packed_experts[i](x) if self.packed_experts is not None
-                    else x @ self._flat(i, w))
-            per_expert = flat.view(-1, k, fan_out)  # (B, K, out)
-            x = torch.einsum("bk,bko->bo", coefficients, per_expert) + coefficients @ b
+            x = self.expert_dropout.forward(x)
+            # sum_k c_k (x W_k + b_k) = [c_1 x, ..., c_K x] [W_1; ...; W_K] + sum_k c_k b_k: the
+            # blend (:meth:`blend`) done on the input side, so that all K experts run as one GEMM
+            # over the batch (not a (B, in, out) weight tensor per sample, which dominated the
+            # runtime at batch 64), and nothing is left to blend after it (at batch 1 the
+            # per-call cost of blending K outputs was a tenth of the experts' time).
+            k, fan_in, _ = w.shape
+            scaled = (coefficients[:, :, None] * x[:, None, :]).reshape(-1, k * fan_in)
+            y = (self.packed_experts[i].forward(scaled) if self.packed_experts is not None
+                 else scaled @ self._stacked(w))
+            x = y + coefficients @ b
             if i < last:
-                x = self.expert_activation(x)
+                x = self.expert_activation.forward(x)
         return x, coefficients
 
 

@@ -53,12 +53,15 @@ class PackedLinear(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         shape = x.shape
-        x = x.reshape(-1, shape[-1]).to(torch.float32).contiguous()
+        flat = x.dim() != 2
+        if flat:
+            x = x.reshape(-1, shape[-1])
+        x = x.to(torch.float32).contiguous()  # no-ops (no copy) for the runtime's inputs
         if self.precision == "fp16":
             y = torch.ops.quantized.linear_dynamic_fp16(x, self._packed)
         else:
             y = torch.ops.quantized.linear_dynamic(x, self._packed, True)
-        return y.reshape(*shape[:-1], self.out_features)
+        return y.reshape(*shape[:-1], self.out_features) if flat else y
 
     def extra_repr(self) -> str:
         return f"in={self.in_features}, out={self.out_features}, {self.precision}"

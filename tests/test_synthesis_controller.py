@@ -291,3 +291,27 @@ def test_far_characters_are_told_to_walk():
     np.testing.assert_array_equal(out[2, :, :9], future[2, :, :9])
     assert future[2, 0, 9 + IDLE] == 1.0  # the input is not changed in place
     np.testing.assert_array_equal(walk_when_far(future, root, goal, 0.0), future)
+
+
+def test_runtime_reads_the_full_nets_predictions(synth, ci_run):
+    """The runtime cuts the predictions it never reads from PoseNet's last layer; what it reads
+    equals the uncut net's prediction of the same inputs."""
+    from couch.synthesis.controller import READ_OUTPUTS
+    from couch.synthesis.train import load_trained
+
+    net, stats, meta = load_trained(ci_run.run_dir, "pose", "best", "cpu")
+    groups_out = list(meta["groups_out"])
+    assert set(groups_out) - set(READ_OUTPUTS)  # something is cut
+    torch.manual_seed(0)
+    inputs = {name: torch.randn(3, len(mean)) for name, (_, mean, _) in synth._inputs.items()}
+    with torch.no_grad():
+        full, cut = net(inputs)[0].numpy(), synth.pose_net(inputs)[0].numpy()
+    assert cut.shape[1] == synth.pose_net.out_dim < full.shape[1]
+    start = 0
+    for g in groups_out:
+        width = synth.widths[g]
+        if g in READ_OUTPUTS:
+            got = cut[:, synth._outputs[g]] * stats.std[g] + stats.mean[g]
+            np.testing.assert_allclose(got, stats.denormalize(g, full[:, start:start + width]),
+                                       rtol=1e-5, atol=1e-5, err_msg=g)
+        start += width

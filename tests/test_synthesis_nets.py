@@ -396,7 +396,26 @@ def test_normalizer_round_trip_and_state_dict() -> None:
         Normalizer.from_stats(np.zeros(3), np.ones(4))
 
 
-def test_posenet_inference_cache_follows_weight_updates() -> None:
+def test_posenet_select_outputs_keeps_the_columns_asked_for() -> None:
+    net = _small_posenet().eval()
+    batch = _posenet_batch(net, 4)
+    with torch.no_grad():
+        full, gates = net(batch)
+    columns = [7, 0, 3, 4]  # any order
+    net.select_outputs(columns)
+    with torch.no_grad():
+        got, got_gates = net(batch)
+    assert got.shape == (4, 4) and net.out_dim == 4
+    torch.testing.assert_close(got, full[:, columns], rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(got_gates, gates)
+    with pytest.raises(ValueError, match="output columns"):
+        net.select_outputs([4])  # out of the 4 left
+    net.pack("fp16")
+    with pytest.raises(RuntimeError, match="before pack"):
+        net.select_outputs([0])
+
+
+def test_posenet_follows_in_place_weight_updates() -> None:
     net = _small_posenet().eval()
     batch = _posenet_batch(net, 4)
     with torch.no_grad():
