@@ -262,7 +262,7 @@ class Synthesizer:
             leaves out of its evaluation). Off by default: the networks alone.
         precision: the networks' large layers at run time (:mod:`couch.synthesis.precision`,
             CPU only): "fp32" as trained; "fp16" (joints within ~0.1 mm of fp32's over 4 s,
-            1.7x the frames/s of one character); "int8" (within ~1 cm, 2x; it changes the
+            2.3x the frames/s of one character); "int8" (within ~1 cm, 2.6x; it changes the
             motion: fewer evaluation trials sat).
     """
 
