@@ -48,13 +48,16 @@ from couch.synthesis.features import (
     ego_features,
     integrate_root,
     interaction_features,
+    interaction_layer,
     relative_root,
+    root_affine,
     root_transforms,
     root_update,
     to_root,
     voxel_grid,
 )
 from couch.synthesis.hand_ik import ArmRig, reach
+from couch.synthesis.nets import first_linear
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.train import ENCODER_GROUPS, GATING_GROUPS, load_trained
 
@@ -66,6 +69,9 @@ HAND_REACH_X = 0.25
 
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
+
+#: PoseNet's encoder of the chair's voxels (I), whose first layer the loop folds per scene.
+INTERACTION_ENCODER = "I"
 
 #: PoseNet's predictions the loop reads. The others (future goals, joint positions a second
 #: ahead) are training targets only: their columns are cut from the last expert layer at load
@@ -309,6 +315,18 @@ class Synthesizer:
         (the others cut from the net) with their denormalisation."""
         stats = self.pose_stats
         inputs = {**ENCODER_GROUPS[net], **{g: (g,) for g in GATING_GROUPS[net]}}
+        # The interaction encoder's first layer is affine in the root pose for a given chair
+        # (features.interaction_layer): folded per scene, its (512, 2048) weights are not read
+        # every frame, nor I built and normalised.
+        if inputs.pop(INTERACTION_ENCODER) != ("interaction",):
+            raise ValueError(f"{self.run_dir}: encoder {INTERACTION_ENCODER} must read the "
+                             f"interaction group alone")
+        encoder = self.pose_net.encoders[INTERACTION_ENCODER]
+        layer = encoder[first_linear(encoder)]
+        self._interaction = (layer.weight.detach().double().cpu().numpy(),
+                             layer.bias.detach().double().cpu().numpy(),
+                             stats.mean["interaction"], stats.std["interaction"])
+        self._folded: tuple[Scene, np.ndarray] | None = None
         self._inputs = {name: (names, np.concatenate([stats.mean[g] for g in names]),
                                np.concatenate([stats.std[g] for g in names]))
                         for name, names in inputs.items()}
@@ -324,9 +342,19 @@ class Synthesizer:
         self._out_mean = np.concatenate([stats.mean[g] for g in read])
         self._out_std = np.concatenate([stats.std[g] for g in read])
 
+    def _interaction_first(self, scene: Scene, root: np.ndarray) -> torch.Tensor:
+        """(B, width) the interaction encoder's first layer for roots (B,4,4) in ``scene``:
+        its folded map (computed once per scene) times :func:`root_affine`."""
+        if self._folded is None or self._folded[0] is not scene:
+            self._folded = (scene, interaction_layer(scene.occupancy, scene.centres_world,
+                                                     *self._interaction))
+        return torch.as_tensor((root_affine(root) @ self._folded[1].T).astype(np.float32),
+                               device=self.device)
+
     def _pose_inputs(self, groups: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """PoseNet's normalised inputs (:func:`couch.synthesis.train.pose_inputs` of the
-        normalised groups) from the raw feature groups, each (B, ...)."""
+        normalised groups) from the raw feature groups, each (B, ...), but the interaction
+        encoder's (see :meth:`_interaction_first`)."""
         batch = len(next(iter(groups.values())))
         out = {}
         for name, (names, mean, std) in self._inputs.items():
@@ -456,9 +484,11 @@ class Synthesizer:
         s.line, s.c_phase = pos, ph
         return pos, ph
 
-    def _state_features(self, scene: Scene, s: _State) -> dict[str, np.ndarray]:
+    def _state_features(self, scene: Scene, s: _State, interaction: bool = True
+                        ) -> dict[str, np.ndarray]:
         """PoseNet's J, T, G, I, E and global phase of the current state, as training builds
-        them (:func:`couch.synthesis.features.sequence_features`), each (B, ...)."""
+        them (:func:`couch.synthesis.features.sequence_features`), each (B, ...); without I
+        unless ``interaction`` (the loop folds it into the network's first layer)."""
         cfg, batch = self.cfg, len(s.root)
         # T: past samples from the history, the present and future from the last prediction.
         past_idx = s.hist_root.shape[1] + self._past_offsets
@@ -472,11 +502,13 @@ class Synthesizer:
         sample_roots = np.concatenate([past_roots, fut_roots], 1)
         goals = np.concatenate([relative_root(sample_roots, s.goal[:, None]),
                                 np.broadcast_to(np.eye(3)[SIT], (batch, len(traj[0]), 3))], -1)
-        return {"joint_positions": s.jpos, "joint_rotations": s.jrot,
-                "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
-                "interaction": interaction_features(scene.occupancy, scene.centres_world,
-                                                    s.root),
-                "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
+        out = {"joint_positions": s.jpos, "joint_rotations": s.jrot,
+               "joint_velocities": s.jvel, "trajectory": traj, "goals": goals,
+               "ego": ego_features(scene.grid, s.root, cfg), "global_phase": s.phase[:, None]}
+        if interaction:
+            out["interaction"] = interaction_features(scene.occupancy, scene.centres_world,
+                                                      s.root)
+        return out
 
     def _next_root(self, s: _State, out: dict[str, np.ndarray]) -> np.ndarray:
         """(B,4,4) next world roots: the ego-centric root update, pulled near the goal towards
@@ -507,7 +539,7 @@ class Synthesizer:
         hands = s.hands
         safe = np.where(mask[..., None], targets, 0.0)
 
-        groups = self._state_features(scene, s)
+        groups = self._state_features(scene, s, interaction=False)
         if self.method == "couch":
             pos, ph = self._control(s, hands, targets, mask)
             groups["control_root_positions"] = control_in_root(pos, to_root(safe, s.root), mask)
@@ -518,7 +550,8 @@ class Synthesizer:
             groups["contact_inputs"] = np.concatenate([rel.reshape(batch, 6), mask], -1)
             hand_phase = mask.astype(np.float64)
         with torch.no_grad():
-            pred, _ = self.pose_net(self._pose_inputs(groups))
+            pred, _ = self.pose_net(self._pose_inputs(groups), {
+                INTERACTION_ENCODER: self._interaction_first(scene, s.root)})
         pred = pred.cpu().numpy().astype(np.float64) * self._out_std + self._out_mean
         out = {g: pred[:, columns] for g, columns in self._outputs.items()}
 

@@ -447,6 +447,36 @@ def interaction_features(occupancy: np.ndarray, centres_world: np.ndarray, root:
     return np.concatenate([occ, rel], axis=-1).reshape((*root.shape[:-2], -1))
 
 
+def interaction_layer(occupancy: np.ndarray, centres_world: np.ndarray, weight: np.ndarray,
+                      bias: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """A linear layer over normalised I, ``y = weight ((I(root) - mean) / std) + bias``, as an
+    affine map of the root pose: A (H, 13) with ``y = A @ root_affine(root)``.
+
+    I's vectors are ``M c + m`` for the fixed voxel centres c, with (M, m) the rotation and
+    translation of ``root^-1``, so the layer is affine in the 12 numbers of ``root^-1``: for a
+    given chair its 4N inputs fold into 13 columns (a network's first layer over I need not
+    read its (H, 4N) weights every frame).
+
+    Args:
+        occupancy: (N,); centres_world: (N, 3) (:func:`interaction_features`' arguments);
+        weight: (H, 4N); bias: (H,); mean, std: (4N,) I's normalisation.
+    """
+    w = np.asarray(weight, np.float64) / np.asarray(std, np.float64)
+    const = np.asarray(bias, np.float64) - w @ np.asarray(mean, np.float64)
+    w = w.reshape(len(w), -1, 4)  # voxel-major: (occupancy, x, y, z) per voxel
+    const = const + w[..., 0] @ np.asarray(occupancy, np.float64)
+    rot = np.einsum("hna,nb->hab", w[..., 1:], np.asarray(centres_world, np.float64))
+    return np.concatenate([const[:, None], rot.reshape(len(w), 9), w[..., 1:].sum(1)], 1)
+
+
+def root_affine(root: np.ndarray) -> np.ndarray:
+    """(..., 13) ``[1, M (9, row-major), m (3)]`` of ``root^-1`` = (M, m), for roots (..., 4, 4):
+    what :func:`interaction_layer`'s map multiplies."""
+    inv = invert_transform(root)
+    return np.concatenate([np.ones((*root.shape[:-2], 1)),
+                           inv[..., :3, :3].reshape(*root.shape[:-2], 9), inv[..., :3, 3]], -1)
+
+
 def contact_net_condition(occupancy: np.ndarray, centres_object: np.ndarray,
                           centre: np.ndarray | None = None) -> np.ndarray:
     """ContactNet's condition (4·N,): I with vectors from the chair centre (default: the

@@ -179,12 +179,21 @@ def mlp(sizes: Sequence[int], activation: Activation = "elu", dropout: float = 0
     return nn.Sequential(*layers)
 
 
-def run_layers(seq: nn.Sequential, x: Tensor) -> Tensor:
-    """``seq(x)``, calling each layer's ``forward`` directly. Module calls dispatch hooks (none
-    are used here): at batch 1 the runtime's ~60 of them a frame cost ~5 % of its time."""
-    for layer in seq:
+def run_layers(seq: nn.Sequential, x: Tensor, start: int = 0) -> Tensor:
+    """``seq[start:](x)``, calling each layer's ``forward`` directly. Module calls dispatch hooks
+    (none are used here): at batch 1 the runtime's ~60 of them a frame cost ~5 % of its time."""
+    for layer in itertools.islice(seq, start, None):
         x = layer.forward(x)
     return x
+
+
+def first_linear(seq: nn.Sequential) -> int:
+    """Index of the first layer of an :func:`mlp` that is a linear map (``nn.Linear`` or, in a
+    packed copy, ``PackedLinear``)."""
+    for i, layer in enumerate(seq):
+        if isinstance(layer, (nn.Linear, PackedLinear)):
+            return i
+    raise ValueError("no linear layer in the network")
 
 
 def linear_widths(net: nn.Module) -> list[int]:
@@ -649,11 +658,23 @@ class PoseNet(nn.Module):
             out.append(x)
         return out
 
-    def encode(self, inputs: Mapping[str, Tensor]) -> Tensor:
-        """Encoded groups concatenated: (B, sum of the encoders' last widths)."""
-        groups = self._gather(inputs, self.inputs, "input group")
-        return torch.cat([run_layers(self.encoders[name], x) for name, x in
-                          zip(self.inputs, groups, strict=True)], dim=-1)
+    def encode(self, inputs: Mapping[str, Tensor],
+               first: Mapping[str, Tensor] | None = None) -> Tensor:
+        """Encoded groups concatenated: (B, sum of the encoders' last widths).
+
+        ``first``: encoder name -> the output of its first linear layer (B, width), given
+        instead of its input group (which ``inputs`` then need not hold): the runtime computes
+        the interaction encoder's from the root pose in closed form (I is affine in it).
+        """
+        first = first or {}
+        out = []
+        for name, dim in self.inputs.items():
+            seq = self.encoders[name]
+            if name in first:
+                out.append(run_layers(seq, first[name], first_linear(seq) + 1))
+            else:
+                out.append(run_layers(seq, self._gather(inputs, {name: dim}, "input group")[0]))
+        return torch.cat(out, dim=-1)
 
     def gate(self, inputs: Mapping[str, Tensor]) -> Tensor:
         """Expert coefficients (B, K): softmax of the gating network, non-negative, sum 1."""
@@ -676,13 +697,15 @@ class PoseNet(nn.Module):
         input (rows k*in to (k+1)*in are expert k's): a view, no copy."""
         return w.reshape(-1, w.shape[-1])
 
-    def forward(self, inputs: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """inputs: name -> (B, dim) for every input group and gating feature.
+    def forward(self, inputs: Mapping[str, Tensor],
+                first: Mapping[str, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """inputs: name -> (B, dim) for every input group and gating feature (``first``: see
+        :meth:`encode`).
 
         Returns (out (B, out_dim), gating coefficients (B, K)).
         """
         coefficients = self.gate(inputs)
-        x = self.encode(inputs)
+        x = self.encode(inputs, first)
         last = len(self.expert_weights) - 1
         for i, (w, b) in enumerate(zip(self.expert_weights, self.expert_biases, strict=True)):
             x = self.expert_dropout.forward(x)

@@ -303,7 +303,8 @@ def test_runtime_reads_the_full_nets_predictions(synth, ci_run):
     groups_out = list(meta["groups_out"])
     assert set(groups_out) - set(READ_OUTPUTS)  # something is cut
     torch.manual_seed(0)
-    inputs = {name: torch.randn(3, len(mean)) for name, (_, mean, _) in synth._inputs.items()}
+    inputs = {name: torch.randn(3, dim) for name, dim in {**net.inputs,
+                                                           **net.gating_inputs}.items()}
     with torch.no_grad():
         full, cut = net(inputs)[0].numpy(), synth.pose_net(inputs)[0].numpy()
     assert cut.shape[1] == synth.pose_net.out_dim < full.shape[1]
@@ -315,3 +316,20 @@ def test_runtime_reads_the_full_nets_predictions(synth, ci_run):
             np.testing.assert_allclose(got, stats.denormalize(g, full[:, start:start + width]),
                                        rtol=1e-5, atol=1e-5, err_msg=g)
         start += width
+
+
+def test_runtime_folds_the_interaction_encoders_first_layer(synth, scene, ci_run):
+    """The loop's interaction encoder starts from its first layer folded per chair: equal to
+    that layer over the normalised I of the same roots."""
+    from couch.synthesis.features import interaction_features
+    from couch.synthesis.train import load_trained
+
+    net, stats, _ = load_trained(ci_run.run_dir, "pose", "best", "cpu")
+    roots = yaw_transform(np.array([0.3, -1.0, 2.0]), np.array([1.2, 0.4, -0.7]),
+                          np.array([0.0, 2.5, -1.0]))
+    i = interaction_features(scene.occupancy, scene.centres_world, roots)
+    with torch.no_grad():
+        want = net.encoders["I"][0](torch.as_tensor(
+            stats.normalize("interaction", i).astype(np.float32))).numpy()
+    np.testing.assert_allclose(synth._interaction_first(scene, roots).numpy(), want,
+                               rtol=1e-4, atol=1e-4)

@@ -27,8 +27,10 @@ from couch.synthesis.features import (
     global_rotations,
     integrate_root,
     interaction_features,
+    interaction_layer,
     pose_features,
     resample,
+    root_affine,
     root_speed,
     root_transforms,
     sequence_features,
@@ -380,3 +382,19 @@ def test_phase_update_wraps_and_advance_phase_inverts_it():
     # seated: 1, as throughout a pelvis contact in the data, instead of a new step cycle
     assert np.allclose(advance_phase(phase, up, seated), [0.25, 0.02, 1.0, 1.0, 0.0])
     assert np.allclose(advance_phase(phase, -up, ~walking), 1.0)
+
+
+def test_interaction_layer_is_the_layer_over_normalised_i():
+    """A linear layer over normalised I folds, for a given chair, into an affine map of the
+    root pose: the same outputs as the layer over I built from scratch, for any rigid root."""
+    rng = np.random.default_rng(3)
+    n, width = 27, 5
+    occupancy = rng.uniform(0, 1, n)
+    centres = rng.normal(size=(n, 3))
+    weight, bias = rng.normal(size=(width, 4 * n)), rng.normal(size=width)
+    mean, std = rng.normal(size=4 * n), rng.uniform(0.5, 2.0, 4 * n)
+    roots = make_transform(axis_angle_to_matrix(rng.normal(size=(6, 3))), rng.normal(size=(6, 3)))
+    want = ((interaction_features(occupancy, centres, roots) - mean) / std) @ weight.T + bias
+    got = root_affine(roots) @ interaction_layer(occupancy, centres, weight, bias, mean, std).T
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    assert root_affine(roots[0]).shape == (13,)

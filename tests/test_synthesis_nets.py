@@ -415,6 +415,18 @@ def test_posenet_select_outputs_keeps_the_columns_asked_for() -> None:
         net.select_outputs([0])
 
 
+def test_posenet_takes_an_encoders_first_layer_instead_of_its_input() -> None:
+    net = _small_posenet().eval()
+    batch = _posenet_batch(net, 3)
+    with torch.no_grad():
+        want, _ = net(batch)
+        first = {"I": net.encoders["I"][0](batch["I"])}
+        got, _ = net({k: v for k, v in batch.items() if k != "I"}, first)
+    torch.testing.assert_close(got, want)
+    with pytest.raises(KeyError, match="missing input group 'I'"):
+        net({k: v for k, v in batch.items() if k != "I"})
+
+
 def test_posenet_follows_in_place_weight_updates() -> None:
     net = _small_posenet().eval()
     batch = _posenet_batch(net, 4)
