@@ -268,8 +268,8 @@ class Synthesizer:
             leaves out of its evaluation). Off by default: the networks alone.
         precision: the networks' large layers at run time (:mod:`couch.synthesis.precision`,
             CPU only): "fp32" as trained; "fp16" (joints within ~0.1 mm of fp32's over 4 s,
-            2.3x the frames/s of one character); "int8" (within ~1 cm, 2.6x; it changes the
-            motion: fewer evaluation trials sat).
+            2.4x the frames/s of one character); "int8" (within ~0.3 cm, 3.5x; it changed the
+            motion in the last evaluation: fewer trials sat).
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
