@@ -293,7 +293,7 @@ class Synthesizer:
         self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which, device)
         self.precision = precision
         self.cfg = feature_config_from_json(json.dumps(meta["feature_config"]))
-        self.groups_in, self.groups_out = list(meta["groups_in"]), list(meta["groups_out"])
+        self.groups_out = list(meta["groups_out"])
         self.widths = {g: int(self.pose_stats.mean[g].size) for g in self.groups_out}
         self._setup_io(net)
         self.pose_net = packed_copy(self.pose_net, precision)
