@@ -91,6 +91,13 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     doc = json.loads((tmp_path / "eval.json").read_text())
     assert set(doc["rows"]) == {"couch", "couch+ik", "baseline"}
     assert doc["settings"]["precision"] == "fp32"
+    # bootstrap intervals of every method, the reduction against the baseline for the others
+    assert "bootstrap intervals over the 2 trials" in table and "- couch: ACE " in table
+    assert set(doc["intervals"]) == set(doc["rows"])
+    assert "ACE reduction %" in doc["intervals"]["couch"]
+    assert "ACE reduction %" not in doc["intervals"]["baseline"]
+    value = doc["intervals"]["couch"]["ACE cm"][0]
+    assert value == pytest.approx(doc["rows"]["couch"]["ACE cm"])
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

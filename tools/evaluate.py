@@ -22,7 +22,13 @@ import torch
 
 from couch.atomic import atomic_path
 from couch.schema import SchemaError
-from couch.synthesis import PRECISIONS, Synthesizer, format_table
+from couch.synthesis import (
+    PRECISIONS,
+    Synthesizer,
+    contact_intervals,
+    format_intervals,
+    format_table,
+)
 from couch.synthesis.data import find_sequences, load_sequence
 from couch.synthesis.evaluation import EvalChair, evaluate, ground_truth_row
 from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
@@ -91,16 +97,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             chairs = [EvalChair(p.stem, *load_mesh(p)) for p in paths]
         else:
             chairs = simulated_chairs(args.chairs, args.seed)
-        rows, _ = evaluate(synths, chairs, trials=args.trials, seconds=args.seconds,
-                           seed=args.seed, contact_samples=args.contact_samples,
-                           progress=not args.quiet)
+        rows, raw = evaluate(synths, chairs, trials=args.trials, seconds=args.seconds,
+                             seed=args.seed, contact_samples=args.contact_samples,
+                             progress=not args.quiet)
+        intervals = contact_intervals(raw, "baseline" if "baseline" in raw else None,
+                                      seed=args.seed)
         if args.data:
             sessions = [load_sequence(r) for r in find_sequences(args.data)]
             rows["ground truth"] = ground_truth_row(sessions)
     except (FileNotFoundError, ValueError, SchemaError) as e:
         print(f"couch-eval: error: {e}", file=sys.stderr)
         return 2
-    table = format_table(rows)
+    table = format_table(rows) + "\n\n" + format_intervals(intervals, len(chairs) * args.trials)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in vars(args).items() if k not in ("output", "quiet")}
@@ -109,7 +117,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     with atomic_path(out / "eval.md") as tmp:
         tmp.write_text(header + table + "\n")
     with atomic_path(out / "eval.json") as tmp:
-        tmp.write_text(json.dumps({"settings": settings, "rows": rows}, indent=2,
+        tmp.write_text(json.dumps({"settings": settings, "rows": rows,
+                                   "intervals": intervals}, indent=2,
                                   default=float) + "\n")
     print(header + table)
     return 0
