@@ -128,7 +128,7 @@ def _cm(errors: np.ndarray, q: float | None = None) -> str:
     return f"{100 * (np.mean(errors) if q is None else np.percentile(errors, q)):.2f} cm"
 
 
-def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = 0.04
+def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = NEAR_CHAIR
                     ) -> list[np.ndarray]:
     """Per part k, ``|ours[:, k] − true[:, k]|`` (m) where ``true[:, k] < near``, from (T,K)
     part-to-chair distances (m) of the same frames."""
