@@ -32,7 +32,14 @@ import torch
 
 import couch
 from couch.body.skeleton import CONTACT_NAMES
-from couch.fitting import BodyParams, PipelineResult, cached_model, detect_contacts, mpjpe
+from couch.fitting import (
+    BodyParams,
+    PipelineResult,
+    ProcessConfig,
+    cached_model,
+    detect_contacts,
+    mpjpe,
+)
 from couch.geometry import apply_transform, fit_rigid_transform
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
@@ -156,11 +163,11 @@ def truth_from_ours(result: PipelineResult, info: dict[str, Any]) -> np.ndarray:
 
 
 def session_accuracy(result: PipelineResult, truth: ProcessedSession,
-                     info: dict[str, Any], contact_model: str = "couch-body-coarse"
+                     info: dict[str, Any], contact_model: str | None = None
                      ) -> SessionAccuracy:
     """The issue's end-to-end numbers of one processed session against the simulator's truth
     (``truth``: its ground_truth.h5; ``info``: its truth.json; ``contact_model``: the body
-    model the run measured contacts on, ``ProcessConfig.contact_model``)."""
+    model the run measured contacts on, ``ProcessConfig.contact_model``; None: its default)."""
     data = read_processed(result.processed)
     align = truth_from_ours(result, info)
     rows = data.quality["frame_rows"]
@@ -171,7 +178,8 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         true_motion = BodyParams(betas=truth.betas, global_orient=truth.global_orient[rows],
                                  body_pose=truth.body_pose[rows], transl=truth.transl[rows])
         true_chair = apply_transform(truth.object_pose, truth.object_vertices.astype(np.float64))
-        true_d = detect_contacts(true_motion, cached_model(contact_model), true_chair,
+        model = cached_model(contact_model or ProcessConfig().contact_model)
+        true_d = detect_contacts(true_motion, model, true_chair,
                                  truth.object_faces, fps=data.fps).distance
         errors = distance_errors(result.contacts.distance, true_d, NEAR_CHAIR)
     true_pose = np.array(info["chair"]["world_from_scan"])
