@@ -243,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per session")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--seed-offset", type=int, default=0,
+                    help="add this to every session's simulator seed: the same kinds of "
+                         "session on other draws (held out from whatever was tuned on these)")
     args = ap.parse_args(argv)
     if not 1 <= args.sessions <= len(SESSIONS):
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
@@ -252,9 +255,12 @@ def main(argv: list[str] | None = None) -> int:
     failed: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = args.output or Path(tmp)
+        if args.seed_offset:  # a kept folder is re-used by session name: other draws, other names
+            work = work / f"seed{args.seed_offset:+d}"
         work.mkdir(parents=True, exist_ok=True)
         for name, settings in SESSIONS[:args.sessions]:
             t0 = time.perf_counter()
+            settings = dict(settings, seed=settings["seed"] + args.seed_offset)
             a = _one(name, settings, work, args.fps, args.duration)
             if isinstance(a, str):
                 failed.append(name)
@@ -262,7 +268,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(a.line(name) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
             rows.append(a)
-    print(f"\n{len(rows)} sessions, {args.fps:g} fps, {args.duration:g} s each "
+    print(f"\n{len(rows)} sessions (seed offset {args.seed_offset}), {args.fps:g} fps, "
+          f"{args.duration:g} s each "
           f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})"
           + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
     if not rows:
