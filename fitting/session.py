@@ -251,7 +251,8 @@ class SessionFit:
             f"heading {self.alignment.yaw_deg:+.1f} deg ({self.alignment.method}, residual "
             f"{self.alignment.residual * 100:.1f} cm); {int(self.imu_filled.sum())} rows in "
             f"IMU gaps" + ("" if self.init_shift is None else
-                           f"; fits started {_cm_median(self.init_shift)} off it"),
+                           f"; the fits' starts moved {_cm_median(self.init_shift)} "
+                           f"onto the clouds"),
             f"shape from {self.shape_source}; chamfer per-frame fit "
             f"{np.nanmean(self.fit_chamfer) * 100:.2f} cm, fused "
             f"{np.nanmean(self.chamfer) * 100:.2f} cm; {int(self.fit.fallback.sum())} "
@@ -516,9 +517,9 @@ def snap_to_clouds(clouds: Sequence[FusedCloud], params: BodyParams, model: Body
     of a body seen from one side takes ~15: nearest vertices pull short while they are far).
 
     The suit's position drifts and one rigid alignment per session leaves it where the heading
-    error's lever arm puts it: on a simulated session the aligned suit stood 13 cm (median) off
+    error's lever arm puts it: on a simulated session the aligned suit stood 23 cm (median) off
     its clouds, more than the fits' 10 cm correspondence cut-off, and the fits failed (MPJPE
-    4.6 cm; 1.55 cm with the fits started from here).
+    4.60 cm; 1.03 cm with the fits started from here).
     """
     verts, _ = pose_body(model, params)
     rng = np.random.default_rng(seed)
