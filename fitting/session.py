@@ -689,9 +689,10 @@ def fit_session(session_dir: str | os.PathLike, *,
     align = align_imu(clouds, imu_body_params(imu, None, zero, coarse), coarse,
                       frames=cfg.align_frames, points=cfg.align_points,
                       step_deg=cfg.yaw_step_deg, seed=bcfg.seed)
+    suit = imu_body_params(imu, align, zero, coarse)  # the aligned suit, mean shape
     shift = np.zeros((len(rows), 3))
     if cfg.snap_init:
-        shift = snap_to_clouds(clouds, imu_body_params(imu, align, zero, coarse), coarse,
+        shift = snap_to_clouds(clouds, suit, coarse,
                                points=cfg.align_points, min_points=bcfg.min_points,
                                seed=bcfg.seed)
     seconds["align"] = time.perf_counter() - t0
@@ -716,8 +717,7 @@ def fit_session(session_dir: str | os.PathLike, *,
             raise SessionFitError(f"{scan_path}: {exc}") from None
         shape_source = "scan"
     else:
-        shape = fit_shape(clouds, _shifted(imu_body_params(imu, align, zero, coarse), shift),
-                          cameras=cameras,
+        shape = fit_shape(clouds, _shifted(suit, shift), cameras=cameras,
                           config=dataclasses.replace(cfg.shape, body=bcfg), progress=progress)
         betas, shape_source = shape.betas, "clouds"
     seconds["shape"] = time.perf_counter() - t0
