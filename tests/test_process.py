@@ -131,6 +131,27 @@ def test_accuracy_bench_pools_f1_and_checks_its_arguments():
     assert len({name for name, _ in accuracy.SESSIONS}) == len(accuracy.SESSIONS)
 
 
+def test_accuracy_bench_tells_late_contacts_from_missed_ones():
+    """Where the wrong contact frames lie: one frame off a true contact's start or end
+    (``edge_errors``) or not, and which true contacts were found at all (``episode_counts``)."""
+    t = np.zeros((10, 3), bool)
+    o = np.zeros((10, 3), bool)
+    t[2:6, 0] = True
+    o[3:7, 0] = True  # one frame late at both ends ...
+    o[9, 0] = True  # ... and a contact of ours three frames after the true one ended
+    t[1, 1] = t[6:8, 1] = True  # two true contacts, neither found
+    t[1:9, 2] = True
+    o[1:9, 2] = True
+    o[4, 2] = False  # a hole in the middle of a long contact
+    assert accuracy.edge_errors(o, t).tolist() == [2, 3, 0]
+    assert accuracy.edge_errors(o, t, width=4).tolist() == [3, 3, 1]
+    assert accuracy.episode_counts(o, t).tolist() == [[1, 1, 1], [2, 0, 0], [1, 1, 0]]
+    with pytest.raises(ValueError, match="same"):
+        accuracy.edge_errors(o, t[:5])
+    with pytest.raises(ValueError, match="same"):
+        accuracy.episode_counts(o[:, 0], t[:, 0])
+
+
 def test_report_is_written(run):
     report = run.report
     assert report is not None and report.is_file()

@@ -7,6 +7,8 @@ given (our calibration, sync, fits, chair registration; the cache ignored), and 
 session and pooled over all of them: the chair's rotation, centre and worst-vertex error, its
 chamfer, the body's MPJPE, contact F1 per part (frames of all sessions pooled), how far each
 part's distance to the chair is off where the true part is near it (:func:`distance_errors`),
+where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
+:func:`edge_errors`) and how many true contacts were found at all (:func:`episode_counts`),
 and interaction label accuracy. Everything is compared in the simulator's world after the
 rigid transform that maps our camera centres onto the true ones, so the calibration's error is
 in every number.
@@ -37,6 +39,7 @@ from couch.fitting import (
     PipelineResult,
     ProcessConfig,
     cached_model,
+    contact_runs,
     detect_contacts,
     mpjpe,
 )
@@ -44,8 +47,8 @@ from couch.geometry import apply_transform, fit_rigid_transform
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
 
-__all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "session_accuracy",
-           "truth_from_ours"]
+__all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "edge_errors",
+           "episode_counts", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 3).
@@ -89,6 +92,12 @@ class SessionAccuracy:
             the frames where the true one is under :data:`NEAR_CHAIR` (where flags are
             decided): a measure of contact accuracy that one frame more or less does not move,
             unlike F1 over a few dozen frames.
+        edges: (5,) int per part: how many of its wrong frames (false positives and false
+            negatives) lie within one frame of a true contact's start or end
+            (:func:`edge_errors`): a contact found a frame early or late.
+        episodes: (5,3) int per part: true contacts (runs of true frames), those of them
+            that some frame of ours overlaps, and our contacts that overlap no true frame
+            (:func:`episode_counts`).
     """
 
     chair_deg: float
@@ -104,6 +113,8 @@ class SessionAccuracy:
     noise_mm: float
     guard: float
     distance_errors: list[np.ndarray] = dataclasses.field(default_factory=list)
+    edges: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(5, np.int64))
+    episodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((5, 3), np.int64))
 
     @property
     def f1(self) -> np.ndarray:
@@ -144,6 +155,41 @@ def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = NEAR_CHAIR
         raise ValueError(f"distance_errors: distances {ours.shape} and {true.shape} must be the "
                          f"same (T,K)")
     return [np.abs(ours[m, k] - true[m, k]) for k, m in enumerate((true < near).T)]
+
+
+def edge_errors(ours: np.ndarray, true: np.ndarray, width: int = 1) -> np.ndarray:
+    """(K,) int per part: frames where the (T,K) bool flags ``ours`` and ``true`` differ and
+    ``true`` changes within ``width`` frames of them (a true contact's first or last frame, or
+    a frame next to it): contacts found early or late rather than missed or invented."""
+    ours, true = np.asarray(ours, bool), np.asarray(true, bool)
+    if ours.shape != true.shape or ours.ndim != 2:
+        raise ValueError(f"edge_errors: flags {ours.shape} and {true.shape} must be the same "
+                         f"(T,K)")
+    t = len(true)
+    lo, hi = np.maximum(np.arange(t) - width, 0), np.minimum(np.arange(t) + width + 1, t)
+    # the true flag is not constant over [k - width, k + width]: counts of True differ from
+    # both 0 and the window's length
+    c = np.concatenate([np.zeros((1, true.shape[1]), np.int64), np.cumsum(true, 0)])
+    n = c[hi] - c[lo]
+    edge = (n > 0) & (n < (hi - lo)[:, None])
+    return ((ours != true) & edge).sum(0)
+
+
+def episode_counts(ours: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(K,3) int per part of (T,K) bool flags: true contacts (runs of True in ``true``), how
+    many of them some frame of ``ours`` overlaps, and runs of ``ours`` that overlap no true
+    frame."""
+    ours, true = np.asarray(ours, bool), np.asarray(true, bool)
+    if ours.shape != true.shape or ours.ndim != 2:
+        raise ValueError(f"episode_counts: flags {ours.shape} and {true.shape} must be the "
+                         f"same (T,K)")
+    out = np.zeros((true.shape[1], 3), np.int64)
+    for k, a, b in contact_runs(true):
+        out[k, 0] += 1
+        out[k, 1] += bool(ours[a:b, k].any())
+    for k, a, b in contact_runs(ours):
+        out[k, 2] += not true[a:b, k].any()
+    return out
 
 
 def f1_score(counts: np.ndarray) -> np.ndarray:
@@ -209,6 +255,8 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         noise_mm=float(result.contacts.noise * 1e3) if result.contacts else float("nan"),
         guard=float(result.contacts.guard) if result.contacts else float("nan"),
         distance_errors=errors,
+        edges=edge_errors(act, true_act),
+        episodes=episode_counts(act, true_act),
     )
 
 
@@ -275,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         return 1
     counts = np.sum([a.contacts for a in rows], axis=0)
+    edges = np.sum([a.edges for a in rows], axis=0)
+    episodes = np.sum([a.episodes for a in rows], axis=0)
     pooled = f1_score(counts)
     plain = [a for a in rows if not a.chair_ambiguous]
     if plain:
@@ -292,7 +342,10 @@ def main(argv: list[str] | None = None) -> int:
         near = (f"distance to the chair off by {_cm(err)} mean, {_cm(err, 90)} 90th percentile "
                 f"over the {len(err)} frames it is truly under {100 * NEAR_CHAIR:g} cm"
                 if len(err) else f"never truly under {100 * NEAR_CHAIR:g} cm from the chair")
-        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn}); {near}")
+        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn}, {edges[k]} of the "
+              f"{fp + fn} wrong frames within a frame of a true contact's start or end; true "
+              f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, {episodes[k, 2]} found that "
+              f"are not there); {near}")
     print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
           f"{min(a.labels for a in rows):.3f} lowest")
     return 1 if failed else 0
