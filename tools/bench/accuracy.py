@@ -342,10 +342,10 @@ def main(argv: list[str] | None = None) -> int:
         near = (f"distance to the chair off by {_cm(err)} mean, {_cm(err, 90)} 90th percentile "
                 f"over the {len(err)} frames it is truly under {100 * NEAR_CHAIR:g} cm"
                 if len(err) else f"never truly under {100 * NEAR_CHAIR:g} cm from the chair")
-        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn}, {edges[k]} of the "
-              f"{fp + fn} wrong frames within a frame of a true contact's start or end; true "
-              f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, {episodes[k, 2]} found that "
-              f"are not there); {near}")
+        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn}; wrong frames "
+              f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
+              f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
+              f"{near}")
     print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
           f"{min(a.labels for a in rows):.3f} lowest")
     return 1 if failed else 0
