@@ -113,8 +113,10 @@ class SessionAccuracy:
     noise_mm: float
     guard: float
     distance_errors: list[np.ndarray] = dataclasses.field(default_factory=list)
-    edges: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(5, np.int64))
-    episodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((5, 3), np.int64))
+    edges: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(len(CONTACT_NAMES), np.int64))
+    episodes: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros((len(CONTACT_NAMES), 3), np.int64))
 
     @property
     def f1(self) -> np.ndarray:
@@ -146,14 +148,20 @@ def _cm(errors: np.ndarray, q: float | None = None) -> str:
     return f"{100 * (np.mean(errors) if q is None else np.percentile(errors, q)):.2f} cm"
 
 
+def _paired(ours: np.ndarray, true: np.ndarray, dtype: type, what: str
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Both (T,K) arrays as ``dtype``, or a ValueError starting with ``what``."""
+    ours, true = np.asarray(ours, dtype), np.asarray(true, dtype)
+    if ours.shape != true.shape or ours.ndim != 2:
+        raise ValueError(f"{what} {ours.shape} and {true.shape} must be the same (T,K)")
+    return ours, true
+
+
 def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = NEAR_CHAIR
                     ) -> list[np.ndarray]:
     """Per part k, ``|ours[:, k] − true[:, k]|`` (m) where ``true[:, k] < near``, from (T,K)
     part-to-chair distances (m) of the same frames."""
-    ours, true = np.asarray(ours, np.float64), np.asarray(true, np.float64)
-    if ours.shape != true.shape or ours.ndim != 2:
-        raise ValueError(f"distance_errors: distances {ours.shape} and {true.shape} must be the "
-                         f"same (T,K)")
+    ours, true = _paired(ours, true, np.float64, "distance_errors: distances")
     return [np.abs(ours[m, k] - true[m, k]) for k, m in enumerate((true < near).T)]
 
 
@@ -161,10 +169,7 @@ def edge_errors(ours: np.ndarray, true: np.ndarray, width: int = 1) -> np.ndarra
     """(K,) int per part: frames where the (T,K) bool flags ``ours`` and ``true`` differ and
     ``true`` changes within ``width`` frames of them (a true contact's first or last frame, or
     a frame next to it): contacts found early or late rather than missed or invented."""
-    ours, true = np.asarray(ours, bool), np.asarray(true, bool)
-    if ours.shape != true.shape or ours.ndim != 2:
-        raise ValueError(f"edge_errors: flags {ours.shape} and {true.shape} must be the same "
-                         f"(T,K)")
+    ours, true = _paired(ours, true, bool, "edge_errors: flags")
     t = len(true)
     lo, hi = np.maximum(np.arange(t) - width, 0), np.minimum(np.arange(t) + width + 1, t)
     # the true flag is not constant over [k - width, k + width]: counts of True differ from
@@ -179,10 +184,7 @@ def episode_counts(ours: np.ndarray, true: np.ndarray) -> np.ndarray:
     """(K,3) int per part of (T,K) bool flags: true contacts (runs of True in ``true``), how
     many of them some frame of ``ours`` overlaps, and runs of ``ours`` that overlap no true
     frame."""
-    ours, true = np.asarray(ours, bool), np.asarray(true, bool)
-    if ours.shape != true.shape or ours.ndim != 2:
-        raise ValueError(f"episode_counts: flags {ours.shape} and {true.shape} must be the "
-                         f"same (T,K)")
+    ours, true = _paired(ours, true, bool, "episode_counts: flags")
     out = np.zeros((true.shape[1], 3), np.int64)
     for k, a, b in contact_runs(true):
         out[k, 0] += 1
