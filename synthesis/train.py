@@ -103,6 +103,11 @@ GATING_GROUPS: dict[str, tuple[str, ...]] = {
 #: PoseNet inputs the runtime builds from its own previous predictions (see ``input_noise``).
 FED_BACK_GROUPS: tuple[str, ...] = ("joint_positions", "joint_rotations", "joint_velocities",
                                     "trajectory", "global_phase")
+#: PoseNet's next-pose outputs -> the J inputs they become on the next frame. The runtime feeds
+#: them back unchanged (both are in the next root's frame); closed-loop training does the same.
+POSE_FEEDBACK: dict[str, str] = {"next_joint_positions": "joint_positions",
+                                 "next_joint_rotations": "joint_rotations",
+                                 "next_joint_velocities": "joint_velocities"}
 _LAYOUT_KEY = {"control": "controlnet", "pose": "posenet", "baseline": "baseline",
                "contact": "contactnet"}
 
@@ -130,6 +135,16 @@ class TrainConfig:
             to the normalised inputs that the runtime feeds back from its own predictions (J,
             T and the global phase), so that the network learns to pull a drifting state back
             instead of compounding its one-step errors (0: off, the paper's recipe).
+        rollout: PoseNet and baseline: frames per closed-loop training window (>= 2).
+        rollout_epochs: PoseNet and baseline: the last this many epochs train on closed-loop
+            windows of ``rollout`` frames instead of one-step pairs (0: off, the paper's
+            recipe). In such a window J (joint positions, rotations, velocities) is, from the
+            second frame on, the network's own previous prediction, as at runtime; the rest is
+            the data's, and every frame's loss is against the data. On teacher-forced pairs J
+            already says where the hands go next, so PoseNet learns to ignore C+; from its own
+            drifted J it has to bring the hands back to where C+, the trajectory and the chair
+            say they should be. Validation then runs closed loop in every epoch (comparable
+            across epochs; it picks ``best.pt``).
         window: ControlNet frames per training window (paper 60).
         stride: ControlNet rows between window starts (0: window // 2).
         val_fraction: share of chairs (or sequences) held out for validation.
@@ -147,6 +162,8 @@ class TrainConfig:
     weight_decay: float = 0.0
     grad_clip: float = 0.0
     input_noise: float = 0.0
+    rollout: int = 0
+    rollout_epochs: int = 0
     window: int = 60
     stride: int = 0
     val_fraction: float = 0.1
@@ -182,7 +199,8 @@ def preset_config(net: str, preset: str = "paper", epochs: int | None = None) ->
 
     ``paper``: supplementary Sec. 2 (network sizes are the nets module's paper defaults).
     ``cpu``: the same recipe on mid-size networks (hidden 64-256, 6 experts, LSTM 256) for 30
-    epochs (ContactNet 100), for training runs of tens of sequences on a CPU in under an hour.
+    epochs (ContactNet 100), for training runs of tens of sequences on a CPU in under an hour;
+    PoseNet and the baseline with input noise and their last 4 epochs closed loop.
     ``ci``: the same recipe on tiny networks (hidden 32-64, 3 experts, 20-frame windows, a few
     epochs) and a faster scheduled-sampling ramp, for tests and smoke runs.
     """
@@ -220,8 +238,11 @@ def preset_config(net: str, preset: str = "paper", epochs: int | None = None) ->
                                  dropout=0.3, gating_dropout=0.3)
         else:
             ncfg = PoseNetConfig()
+        # cpu: the last 4 epochs closed loop (8-frame windows); without them PoseNet learns
+        # to ignore C+ and its hands go where the pose alone takes them (see TrainConfig).
         kw = dict(lr=1e-3 if ci else 5e-4 if cpu else 1e-4, epochs=6 if ci else 30 if cpu
-                  else 150, input_noise=0.3 if cpu else 0.0)
+                  else 150, input_noise=0.3 if cpu else 0.0, rollout=8 if cpu else 0,
+                  rollout_epochs=4 if cpu else 0)
     else:
         if ci:
             ncfg = ContactNetConfig(condition_encoder=(64, 32, 16), encoder_hidden=(32, 16),
@@ -266,6 +287,8 @@ class _Task:
     stats: FeatureStats
     loss: Callable[[nn.Module, Any, int, bool, torch.Generator | None], dict[str, Tensor]]
     meta: dict[str, Any]
+    #: PoseNet's closed-loop training windows for the last ``rollout_epochs`` epochs.
+    rollout_ds: torch.utils.data.Dataset | None = None
 
 
 def _to(x: Any, device: torch.device) -> Any:
@@ -352,30 +375,90 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     out_dim = sum(d[g] for g in groups_out)
     model = PoseNet(inputs, gating, out_dim, ncfg)
     train_ds = FrameDataset(cache, groups_in, groups_out, cache.sequence_rows(train), stats)
-    val_ds = FrameDataset(cache, groups_in, groups_out, cache.sequence_rows(val), stats)
-    widths = {g: d[g] for g in groups_out}
+    val_ds: torch.utils.data.Dataset = FrameDataset(cache, groups_in, groups_out,
+                                                    cache.sequence_rows(val), stats)
+    widths = [d[g] for g in groups_out]
+    rollout_ds = None
+    if cfg.rollout_epochs > 0:
+        if cfg.rollout < 2:
+            raise ValueError(f"rollout_epochs {cfg.rollout_epochs} needs rollout windows of at "
+                             f"least 2 frames, got rollout={cfg.rollout}")
+        groups = groups_in + groups_out
+        rollout_ds = WindowDataset(cache, cfg.rollout, max(1, cfg.rollout // 2), train,
+                                   groups=groups, stats=stats)
+        if len(rollout_ds) == 0:
+            raise ValueError(f"{cache.path}: no training sequence has {cfg.rollout} frames for "
+                             "PoseNet's closed-loop windows (rollout)")
+        val_ds = WindowDataset(cache, cfg.rollout, cfg.rollout, val, groups=groups, stats=stats)
+    feedback = pose_feedback(groups_out, widths, stats)
+
+    def noisy(x: dict[str, Tensor], gen: torch.Generator | None) -> dict[str, Tensor]:
+        x = dict(x)
+        for g in FED_BACK_GROUPS:
+            if g in x:
+                noise = torch.randn(x[g].shape, generator=gen, device=x[g].device)
+                x[g] = x[g] + cfg.input_noise * noise.to(x[g].dtype)
+        return x
 
     def loss(model: nn.Module, batch: Any, epoch: int, training: bool,
              gen: torch.Generator | None) -> dict[str, Tensor]:
-        x, y = batch
-        if training and cfg.input_noise > 0:
-            x = dict(x)
-            for g in FED_BACK_GROUPS:
-                if g in x:
-                    noise = torch.randn(x[g].shape, generator=gen, device=x[g].device)
-                    x[g] = x[g] + cfg.input_noise * noise.to(x[g].dtype)
-        pred, _ = model(pose_inputs(x, cfg.net))
-        target = torch.cat([y[g] for g in groups_out], -1)
-        terms = {"loss": torch.mean((pred - target) ** 2)}
+        if isinstance(batch, dict):  # a closed-loop window (B, rollout, dim) per group
+            steps = next(iter(batch.values())).shape[1]
+            fed: dict[str, Tensor] = {}
+            errors = []
+            for k in range(steps):
+                x = {g: batch[g][:, k] for g in groups_in} | fed
+                if training and cfg.input_noise > 0:
+                    x = noisy(x, gen)
+                pred, _ = model(pose_inputs(x, cfg.net))
+                errors.append(pred - torch.cat([batch[g][:, k] for g in groups_out], -1))
+                # The fed-back pose is not differentiated through: each frame learns to
+                # correct the state it is given, as scheduled sampling does.
+                fed = feedback(pred.detach())
+            err = torch.stack(errors, 1)
+        else:
+            x, y = batch
+            if training and cfg.input_noise > 0:
+                x = noisy(x, gen)
+            pred, _ = model(pose_inputs(x, cfg.net))
+            err = pred - torch.cat([y[g] for g in groups_out], -1)
+        terms = {"loss": torch.mean(err ** 2)}
         # Per-group MSE components (which targets are hard) from the same prediction.
-        for g, part in zip(groups_out, torch.split((pred - target).detach() ** 2,
-                                                   list(widths.values()), -1), strict=True):
+        for g, part in zip(groups_out, torch.split(err.detach() ** 2, widths, -1), strict=True):
             terms[g] = part.mean()
         return terms
 
     meta = {"model_args": {"inputs": inputs, "gating_inputs": gating, "out_dim": out_dim},
             "groups_in": groups_in, "groups_out": groups_out}
-    return _Task(model, train_ds, val_ds, stats, loss, meta)
+    return _Task(model, train_ds, val_ds, stats, loss, meta, rollout_ds)
+
+
+def pose_feedback(groups_out: Sequence[str], widths: Sequence[int], stats: FeatureStats
+                  ) -> Callable[[Tensor], dict[str, Tensor]]:
+    """A function from PoseNet's normalised prediction (B, sum(widths)), its ``groups_out``
+    concatenated, to the J input groups of the next frame (:data:`POSE_FEEDBACK`), each
+    (B, dim) and normalised as an input: what the runtime feeds back, in training's units."""
+    columns, start = {}, 0
+    for g, w in zip(groups_out, widths, strict=True):
+        columns[g] = slice(start, start + w)
+        start += w
+    missing = [g for g in POSE_FEEDBACK if g not in columns]
+    if missing:
+        raise ValueError(f"PoseNet outputs {missing} missing: nothing to feed back")
+    # input = (output * std_out + mean_out - mean_in) / std_in, as one scale and shift
+    maps = {}
+    for out_g, in_g in POSE_FEEDBACK.items():
+        std_in = torch.as_tensor(stats.std[in_g], dtype=torch.float32)
+        maps[in_g] = (columns[out_g],
+                      torch.as_tensor(stats.std[out_g], dtype=torch.float32) / std_in,
+                      (torch.as_tensor(stats.mean[out_g], dtype=torch.float32)
+                       - torch.as_tensor(stats.mean[in_g], dtype=torch.float32)) / std_in)
+
+    def feed(pred: Tensor) -> dict[str, Tensor]:
+        return {g: pred[:, cols] * scale.to(pred.device) + shift.to(pred.device)
+                for g, (cols, scale, shift) in maps.items()}
+
+    return feed
 
 
 def _contact_stats(cache: FeatureCache, rows: np.ndarray) -> FeatureStats:
@@ -633,6 +716,10 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
                                                generator=loader_gen, collate_fn=collate_batch)
     val_loader = torch.utils.data.DataLoader(task.val_ds, batch_size=bs, shuffle=False,
                                              collate_fn=collate_batch)
+    rollout_loader = (None if task.rollout_ds is None else torch.utils.data.DataLoader(
+        task.rollout_ds, batch_size=bs, shuffle=True, generator=loader_gen,
+        collate_fn=collate_batch))
+    first_rollout = cfg.epochs - cfg.rollout_epochs + 1
     roll_gen = torch.Generator(device=device)
     t_call = time.perf_counter()
     last = cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)
@@ -644,8 +731,10 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         roll_gen.manual_seed(es + 2)
         lr = optimizer.param_groups[0]["lr"]
         bar = progress
-        tr = _run_epoch(task, train_loader, epoch, True, optimizer, cfg, device, roll_gen, bar,
-                        f"{net} {epoch}/{cfg.epochs} train")
+        closed = rollout_loader is not None and epoch >= first_rollout
+        tr = _run_epoch(task, rollout_loader if closed else train_loader, epoch, True,
+                        optimizer, cfg, device, roll_gen, bar,
+                        f"{net} {epoch}/{cfg.epochs} train{' (closed loop)' if closed else ''}")
         # Validation draws its own fixed noise (ContactNet's z, rollout Bernoullis) without
         # touching the training streams, so it is comparable across epochs.
         with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
@@ -784,6 +873,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--net", default="all", choices=[*NETS, "all"])
     p.add_argument("--preset", default="paper", choices=list(PRESETS))
     p.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
+    p.add_argument("--rollout-epochs", type=int, default=None,
+                   help="PoseNet and baseline: train the last N epochs closed loop (override "
+                        "the preset's; 0: one-step pairs only)")
+    p.add_argument("--rollout", type=int, default=None,
+                   help="PoseNet and baseline: frames per closed-loop window (override the "
+                        "preset's)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1,
@@ -808,10 +903,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"couch-train: error: --threads must be at least 1, got {args.threads}",
               file=sys.stderr)
         return 2
+    for flag, value in (("--rollout-epochs", args.rollout_epochs), ("--rollout", args.rollout)):
+        if value is not None and value < 0:
+            print(f"couch-train: error: {flag} must not be negative, got {value}",
+                  file=sys.stderr)
+            return 2
+    overrides = {k: v for k, v in (("rollout_epochs", args.rollout_epochs),
+                                   ("rollout", args.rollout)) if v is not None}
+    configs = ({n: dataclasses.replace(preset_config(n, args.preset, args.epochs), **overrides)
+                for n in ("pose", "baseline")} if overrides else None)
     try:
         result = train(args.data, args.output, net=args.net, preset=args.preset,
                        epochs=args.epochs, device=args.device, seed=args.seed,
-                       resume=not args.no_resume, progress=not args.quiet, threads=args.threads)
+                       resume=not args.no_resume, progress=not args.quiet, threads=args.threads,
+                       configs=configs)
     except (FileNotFoundError, ValueError, SchemaError) as e:
         print(f"couch-train: error: {e}", file=sys.stderr)
         return 2

@@ -31,7 +31,15 @@ from couch.synthesis.data import (
     split,
 )
 from couch.synthesis.features import LAYOUT, FeatureStats
-from couch.synthesis.train import NETS, load_trained, main, pose_inputs, train
+from couch.synthesis.train import (
+    NETS,
+    load_trained,
+    main,
+    pose_feedback,
+    pose_inputs,
+    preset_config,
+    train,
+)
 
 FILES = ("checkpoint.pt", "best.pt", "stats.npz", "log.csv", "curves.png")
 
@@ -124,6 +132,46 @@ def test_load_trained_matches_the_trained_model(trained):
         assert meta["train_config"]["preset"] == "ci"
         assert best.sample(x["contact_condition"][:2], 3).shape == (2, 3, 6)
     assert isinstance(FeatureStats.load(trained.nets["pose"].dir / "stats.npz"), FeatureStats)
+
+
+def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained):
+    """Closed-loop training feeds PoseNet's next-pose prediction back as the next frame's J:
+    fed the data's own next-pose targets, the feedback must give the data's next J inputs
+    (same rows, each normalised as its group)."""
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, _ = split(cache)
+    _, stats, meta = load_trained(trained.run_dir, "pose", which="last")
+    gin, gout = meta["groups_in"], meta["groups_out"]
+    ds = WindowDataset(cache, 6, sequences=train_seqs, groups=gin + gout, stats=stats)
+    batch = ds.__getitems__(range(min(4, len(ds))))
+    feed = pose_feedback(gout, [cache.dims[g] for g in gout], stats)
+    for k in range(5):
+        fed = feed(torch.cat([batch[g][:, k] for g in gout], -1))
+        assert set(fed) == {"joint_positions", "joint_rotations", "joint_velocities"}
+        for g, value in fed.items():
+            torch.testing.assert_close(value, batch[g][:, k + 1], atol=2e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="feed back"):
+        pose_feedback(["root_update"], [3], stats)
+
+
+def test_closed_loop_epochs_train_and_validate_closed_loop(sim, trained, tmp_path):
+    """``rollout_epochs``: the last epochs train on closed-loop windows, validation is closed
+    loop throughout (its loss is above the one-step run's), and the closed-loop loss falls."""
+    cfg = dataclasses.replace(preset_config("pose", "ci"), rollout=4, rollout_epochs=3)
+    r = train([sim], tmp_path, net="pose", progress=False, configs={"pose": cfg}).nets["pose"]
+    assert len(r.history) == cfg.epochs
+    one_step = trained.nets["pose"].history
+    # the same model as the one-step run until the closed-loop epochs begin, so the same
+    # training loss; its validation is closed loop, so higher
+    first = cfg.epochs - cfg.rollout_epochs
+    assert r.history[first - 1]["train_loss"] == pytest.approx(
+        one_step[first - 1]["train_loss"], rel=1e-4)
+    assert r.val_loss[0] > one_step[0]["val_loss"]
+    assert r.val_loss[-1] < r.val_loss[0], r.val_loss
+    assert r.train_loss[-1] < r.train_loss[first], r.train_loss
+    with pytest.raises(ValueError, match="rollout"):
+        train([sim], tmp_path / "bad", net="pose", progress=False,
+              configs={"pose": dataclasses.replace(cfg, rollout=1)})
 
 
 def test_a_run_on_older_features_is_a_clear_error(trained, tmp_path):
