@@ -143,8 +143,8 @@ class TrainConfig:
             the data's, and every frame's loss is against the data. On teacher-forced pairs J
             already says where the hands go next, so PoseNet learns to ignore C+; from its own
             drifted J it has to bring the hands back to where C+, the trajectory and the chair
-            say they should be. Validation then runs closed loop in every epoch (comparable
-            across epochs; it picks ``best.pt``).
+            say they should be. Validation then runs closed loop in every epoch, and
+            ``best.pt`` is the closed-loop epoch with the lowest validation loss.
         window: ControlNet frames per training window (paper 60).
         stride: ControlNet rows between window starts (0: window // 2).
         val_fraction: share of chairs (or sequences) held out for validation.
@@ -732,6 +732,10 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         lr = optimizer.param_groups[0]["lr"]
         bar = progress
         closed = rollout_loader is not None and epoch >= first_rollout
+        if closed and epoch == first_rollout:
+            # best.pt comes from the closed-loop epochs: the one-step ones before them are a
+            # warm-up whose closed-loop validation can be lower while their hands ignore C+.
+            best_val = math.inf
         tr = _run_epoch(task, rollout_loader if closed else train_loader, epoch, True,
                         optimizer, cfg, device, roll_gen, bar,
                         f"{net} {epoch}/{cfg.epochs} train{' (closed loop)' if closed else ''}")

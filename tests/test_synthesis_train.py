@@ -169,6 +169,8 @@ def test_closed_loop_epochs_train_and_validate_closed_loop(sim, trained, tmp_pat
     assert r.val_loss[0] > one_step[0]["val_loss"]
     assert r.val_loss[-1] < r.val_loss[0], r.val_loss
     assert r.train_loss[-1] < r.train_loss[first], r.train_loss
+    # best.pt is a closed-loop epoch's model, whatever the one-step warm-up's validation was
+    assert torch.load(r.dir / "best.pt", weights_only=True)["epoch"] > first
     with pytest.raises(ValueError, match="rollout"):
         train([sim], tmp_path / "bad", net="pose", progress=False,
               configs={"pose": dataclasses.replace(cfg, rollout=1)})
@@ -270,6 +272,8 @@ def test_main_reports_bad_inputs(tmp_path, capsys):
     assert str(foreign) in err and "schema_version" in err
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--net", "posenet"]) == 2
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--epochs", "0"]) == 2
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "--rollout-epochs", "-1"]) == 2
+    assert "--rollout-epochs must not be negative" in capsys.readouterr().err
 
 
 def test_main_trains_and_resumes_finished_run(sim, trained, capsys):
