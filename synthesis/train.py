@@ -673,8 +673,10 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         except Exception as e:  # any unreadable checkpoint gets the same message
             raise ValueError(f"{ck_path}: cannot read checkpoint ({e}); use --no-resume") from e
         saved = json.loads(checkpoint["meta"])["train_config"]
-        if saved != json.loads(cfg.to_json()):
-            diff = sorted(k for k in saved if saved.get(k) != json.loads(cfg.to_json()).get(k))
+        now = json.loads(cfg.to_json())
+        if saved != now:
+            # both sides' keys: a run saved before a setting existed lacks it
+            diff = sorted(k for k in {*saved, *now} if saved.get(k) != now.get(k))
             raise ValueError(f"{ck_path}: was trained with different settings ({', '.join(diff)});"
                              " use --no-resume or another run folder")
     stats = FeatureStats.load(stats_path) if checkpoint is not None and stats_path.is_file() \

@@ -99,8 +99,16 @@ def test_resume_continues_and_reproduces(sim, trained, tmp_path):
     assert third.nets["pose"].resumed_from == r.epochs
     assert len(_log(tmp_path / "pose" / "log.csv")) == r.epochs
     # Different settings must not silently continue an old run.
-    with pytest.raises(ValueError, match=r"checkpoint\.pt"):
+    with pytest.raises(ValueError, match=r"checkpoint\.pt: .*settings \(epochs\)"):
         train([sim], tmp_path, net="pose", preset="ci", epochs=9, progress=False)
+    # ... nor a run saved before a setting existed (the setting is named)
+    ck = torch.load(tmp_path / "pose" / "checkpoint.pt", weights_only=True)
+    meta = json.loads(ck["meta"])
+    del meta["train_config"]["rollout"]
+    ck["meta"] = json.dumps(meta)
+    torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"settings \(rollout\)"):
+        train([sim], tmp_path, net="pose", preset="ci", progress=False)
 
 
 def test_load_trained_matches_the_trained_model(trained):
