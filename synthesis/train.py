@@ -403,19 +403,19 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     def loss(model: nn.Module, batch: Any, epoch: int, training: bool,
              gen: torch.Generator | None) -> dict[str, Tensor]:
         if isinstance(batch, dict):  # a closed-loop window (B, rollout, dim) per group
-            steps = next(iter(batch.values())).shape[1]
+            target = torch.cat([batch[g] for g in groups_out], -1)  # (B, rollout, out)
             fed: dict[str, Tensor] = {}
-            errors = []
-            for k in range(steps):
+            preds = []
+            for k in range(target.shape[1]):
                 x = {g: batch[g][:, k] for g in groups_in} | fed
                 if training and cfg.input_noise > 0:
                     x = noisy(x, gen)
                 pred, _ = model(pose_inputs(x, cfg.net))
-                errors.append(pred - torch.cat([batch[g][:, k] for g in groups_out], -1))
+                preds.append(pred)
                 # The fed-back pose is not differentiated through: each frame learns to
                 # correct the state it is given, as scheduled sampling does.
                 fed = feedback(pred.detach())
-            err = torch.stack(errors, 1)
+            err = torch.stack(preds, 1) - target
         else:
             x, y = batch
             if training and cfg.input_noise > 0:
