@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from couch.body.skeleton import CONTACT_NAMES
 from couch.schema import SCHEMA_VERSION, read_processed, write_processed, write_session_group
 from couch.synthesis.data import (
     FeatureCache,
@@ -30,7 +31,7 @@ from couch.synthesis.data import (
     load_sequence,
     split,
 )
-from couch.synthesis.features import LAYOUT, FeatureStats
+from couch.synthesis.features import LAYOUT, SIT, FeatureStats
 from couch.synthesis.train import (
     NETS,
     load_trained,
@@ -143,21 +144,46 @@ def test_load_trained_matches_the_trained_model(trained):
 
 
 def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained):
-    """Closed-loop training feeds PoseNet's next-pose prediction back as the next frame's J:
-    fed the data's own next-pose targets, the feedback must give the data's next J inputs
-    (same rows, each normalised as its group)."""
+    """Closed-loop training feeds PoseNet's prediction back as the runtime does: fed the data's
+    own targets, the feedback must give the data's next J and T inputs (same rows, each
+    normalised as its group), and the data's next global phase wherever the runtime's rule
+    for being seated (predicted pelvis contact or next sit label > 0.5) agrees with the data."""
     cache = FeatureCache(trained.cache_path)
     train_seqs, _ = split(cache)
     _, stats, meta = load_trained(trained.run_dir, "pose", which="last")
     gin, gout = meta["groups_in"], meta["groups_out"]
     ds = WindowDataset(cache, 6, sequences=train_seqs, groups=gin + gout, stats=stats)
-    batch = ds.__getitems__(range(min(4, len(ds))))
+    batch = ds.__getitems__(range(len(ds)))
     feed = pose_feedback(gout, [cache.dims[g] for g in gout], stats)
+    sit_col = 9 + SIT
+    agree = total = 0
     for k in range(5):
-        fed = feed(torch.cat([batch[g][:, k] for g in gout], -1))
-        assert set(fed) == {"joint_positions", "joint_rotations", "joint_velocities"}
-        for g, value in fed.items():
-            torch.testing.assert_close(value, batch[g][:, k + 1], atol=2e-4, rtol=1e-4)
+        nxt = {g: batch[g][:, k + 1] for g in gin}
+        # the other groups are passed through from the data's next row untouched
+        nxt["ego"] = torch.full_like(nxt["ego"], 7.0)
+        fed = feed(torch.cat([batch[g][:, k] for g in gout], -1),
+                   {g: batch[g][:, k] for g in gin}, nxt)
+        assert set(fed) == set(gin)
+        assert torch.equal(fed["ego"], nxt["ego"])
+        for g in ("joint_positions", "joint_rotations", "joint_velocities", "trajectory"):
+            torch.testing.assert_close(fed[g], batch[g][:, k + 1], atol=2e-4, rtol=1e-4)
+        phase = fed["global_phase"] * float(stats.std["global_phase"][0]) + float(
+            stats.mean["global_phase"][0])
+        data = batch["global_phase"][:, k + 1] * float(stats.std["global_phase"][0]) + float(
+            stats.mean["global_phase"][0])
+        fut = (batch["future_trajectory"][:, k] * torch.as_tensor(stats.std["future_trajectory"])
+               + torch.as_tensor(stats.mean["future_trajectory"]))
+        contacts = (batch["next_contacts"][:, k] * torch.as_tensor(stats.std["next_contacts"])
+                    + torch.as_tensor(stats.mean["next_contacts"]))
+        seated = (contacts[:, CONTACT_NAMES.index("pelvis")] > 0.5) | (fut[:, sit_col] > 0.5)
+        torch.testing.assert_close(phase[seated], torch.ones_like(phase[seated]))
+        same = seated == (data[:, 0] > 1 - 1e-4)
+        # phases are on a circle: 0.99998 and 0 are the same
+        wrapped = torch.remainder(phase[same] - data[same] + 0.5, 1.0) - 0.5
+        torch.testing.assert_close(wrapped, torch.zeros_like(wrapped), atol=2e-4, rtol=0)
+        agree, total = agree + int(same.sum()), total + len(same)
+    # the rule is the data's own nearly everywhere: only frames at a sit's onset differ
+    assert agree >= 0.95 * total, (agree, total)
     with pytest.raises(ValueError, match="feed back"):
         pose_feedback(["root_update"], [3], stats)
 
