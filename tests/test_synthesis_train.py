@@ -156,7 +156,7 @@ def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained
     batch = ds.__getitems__(range(len(ds)))
     feed = pose_feedback(gout, [cache.dims[g] for g in gout], stats)
     sit_col = 9 + SIT
-    agree = total = 0
+    agree = total = seated_rows = 0
     for k in range(5):
         nxt = {g: batch[g][:, k + 1] for g in gin}
         # the other groups are passed through from the data's next row untouched
@@ -182,6 +182,9 @@ def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained
         wrapped = torch.remainder(phase[same] - data[same] + 0.5, 1.0) - 0.5
         torch.testing.assert_close(wrapped, torch.zeros_like(wrapped), atol=2e-4, rtol=0)
         agree, total = agree + int(same.sum()), total + len(same)
+        seated_rows += int(seated.sum())
+    # both branches of the phase rule were exercised
+    assert 0 < seated_rows < total, (seated_rows, total)
     # the rule is the data's own nearly everywhere: only frames at a sit's onset differ
     assert agree >= 0.95 * total, (agree, total)
     with pytest.raises(ValueError, match="feed back"):
