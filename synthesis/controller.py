@@ -53,6 +53,7 @@ from couch.synthesis.features import (
     root_affine,
     root_transforms,
     root_update,
+    tidy_future_trajectory,
     to_root,
     voxel_grid,
 )
@@ -586,11 +587,7 @@ class Synthesizer:
             s.jvel = s.jvel + cfg.fps * np.einsum("bji,bkj->bki", s.root[:, :3, :3],
                                                   world - prev)
             s.ik_offset = world
-        fut = out["future_trajectory"].reshape(batch, -1, 12)
-        fut[..., 1] = 0.0  # roots live on the floor
-        fut[..., 3:9] = matrix_to_6d(sixd_to_matrix(fut[..., 3:9]))
-        act = np.clip(fut[..., 9:], 0.0, None)
-        fut[..., 9:] = act / np.maximum(act.sum(-1, keepdims=True), 1e-6)
+        fut = tidy_future_trajectory(out["future_trajectory"].reshape(batch, -1, 12))
         s.future = walk_when_far(fut, s.root, s.goal, self.walk_radius)
         seated = (out["next_contacts"][:, CONTACT_NAMES.index("pelvis")] > 0.5) | (
             fut[:, 0, 9 + SIT] > 0.5)

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from couch.atomic import atomic_path
 from couch.body import JOINT_INDEX, NUM_JOINTS, PARENTS
 from couch.geometry import apply_transform, invert_transform, make_transform
-from couch.rotations import axis_angle_to_matrix, matrix_to_6d
+from couch.rotations import Array, axis_angle_to_matrix, matrix_to_6d, sixd_to_matrix
 from couch.schema import ProcessedSession
 
 ACTIONS: tuple[str, ...] = ("idle", "walk", "sit")
@@ -710,6 +710,19 @@ def advance_phase(phase: np.ndarray, update: np.ndarray, seated: np.ndarray) -> 
     """Inverse of :func:`phase_update` at runtime: ``phase + update`` wrapped into [0, 1), and 1
     while ``seated`` (bool, same shape; :func:`global_phase` is 1 throughout a pelvis contact)."""
     return np.where(seated, 1.0, np.mod(np.asarray(phase) + np.asarray(update), 1.0))
+
+
+def tidy_future_trajectory(future: Array) -> Array:
+    """PoseNet's predicted future trajectory (..., K, 12) (position 3, direction 6D, action
+    labels 3; numpy or torch) as the runtime feeds it back: on the floor (y = 0), unit 6D
+    directions, action labels clipped at 0 and summing to 1. Returns a new array; closed-loop
+    training (:func:`couch.synthesis.train.pose_feedback`) applies the same rule."""
+    out = future * 1.0  # a copy of either kind
+    out[..., 1] = 0.0  # roots live on the floor
+    out[..., 3:9] = matrix_to_6d(sixd_to_matrix(out[..., 3:9]))
+    act = out[..., 9:].clip(min=0.0)
+    out[..., 9:] = act / act.sum(-1)[..., None].clip(min=1e-6)
+    return out
 
 
 def root_update(root: np.ndarray, next_root: np.ndarray) -> np.ndarray:

@@ -42,7 +42,6 @@ from tqdm import tqdm
 
 from couch.atomic import atomic_path
 from couch.body.skeleton import CONTACT_NAMES
-from couch.rotations import matrix_to_6d, sixd_to_matrix
 from couch.schema import SchemaError
 from couch.synthesis.data import (
     FeatureCache,
@@ -56,7 +55,7 @@ from couch.synthesis.data import (
     fit_stats,
     split,
 )
-from couch.synthesis.features import SIT, FeatureStats, layout
+from couch.synthesis.features import SIT, FeatureStats, layout, tidy_future_trajectory
 from couch.synthesis.nets import (
     ContactNet,
     ContactNetConfig,
@@ -448,14 +447,15 @@ def pose_feedback(groups_out: Sequence[str], widths: Sequence[int], stats: Featu
     (:class:`couch.synthesis.controller.Synthesizer`): ``nxt`` with
 
     - J from the next-pose outputs (:data:`POSE_FEEDBACK`);
-    - T's present and future samples from ``future_trajectory``, put on the floor with unit
-      6D directions and action labels summing to 1 (its past samples stay the data's: the
-      runtime takes them from the roots it went through);
+    - T's present and future samples from ``future_trajectory``, tidied as at runtime
+      (:func:`~couch.synthesis.features.tidy_future_trajectory`; its past samples stay the
+      data's: the runtime takes them from the roots it went through);
     - the global phase advanced by ``global_phase_update`` (:func:`~couch.synthesis.features.
       advance_phase`), 1 once the predicted pelvis contact or the next sit label passes 0.5.
 
-    Measured (PoseNet fine-tuned 4 closed-loop epochs, 12 held-out chairs x 8 trials, chair
-    seeds 0 / 1): ACE 4.95 / 5.78 cm with T and the phase fed back, 5.74 / 6.73 with J alone.
+    Measured: fine-tuned for 4 closed-loop epochs (12 held-out chairs x 8 trials, chair seeds
+    0 / 1), ACE 4.95 / 5.78 cm with T and the phase fed back, 5.74 / 6.73 with J alone; trained
+    from scratch (384 trials), within the noise of J alone (README, *Results so far*).
     """
     columns, start = {}, 0
     for g, w in zip(groups_out, widths, strict=True):
@@ -489,11 +489,8 @@ def pose_feedback(groups_out: Sequence[str], widths: Sequence[int], stats: Featu
         out = dict(nxt)
         for g, (cols, scale, shift) in maps.items():
             out[g] = pred[:, cols] * scale.to(pred.device) + shift.to(pred.device)
-        fut = denorm(pred, "future_trajectory", future_out).reshape(len(pred), -1, 12)
-        act = fut[..., 9:].clamp_min(0.0)
-        fut = torch.cat([fut[..., :1], torch.zeros_like(fut[..., 1:2]), fut[..., 2:3],
-                         matrix_to_6d(sixd_to_matrix(fut[..., 3:9])),
-                         act / act.sum(-1, keepdim=True).clamp_min(1e-6)], -1)
+        fut = tidy_future_trajectory(
+            denorm(pred, "future_trajectory", future_out).reshape(len(pred), -1, 12))
         m, sd = (t.to(pred.device) for t in future_in)
         out["trajectory"] = torch.cat([nxt["trajectory"][:, :-n_fut],
                                        (fut.reshape(len(pred), -1) - m) / sd], -1)

@@ -157,6 +157,10 @@ def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained
     feed = pose_feedback(gout, [cache.dims[g] for g in gout], stats)
     sit_col = 9 + SIT
     agree = total = seated_rows = 0
+
+    def denorm(t: torch.Tensor, g: str) -> torch.Tensor:
+        return t * torch.as_tensor(stats.std[g]) + torch.as_tensor(stats.mean[g])
+
     for k in range(5):
         nxt = {g: batch[g][:, k + 1] for g in gin}
         # the other groups are passed through from the data's next row untouched
@@ -167,14 +171,10 @@ def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained
         assert torch.equal(fed["ego"], nxt["ego"])
         for g in ("joint_positions", "joint_rotations", "joint_velocities", "trajectory"):
             torch.testing.assert_close(fed[g], batch[g][:, k + 1], atol=2e-4, rtol=1e-4)
-        phase = fed["global_phase"] * float(stats.std["global_phase"][0]) + float(
-            stats.mean["global_phase"][0])
-        data = batch["global_phase"][:, k + 1] * float(stats.std["global_phase"][0]) + float(
-            stats.mean["global_phase"][0])
-        fut = (batch["future_trajectory"][:, k] * torch.as_tensor(stats.std["future_trajectory"])
-               + torch.as_tensor(stats.mean["future_trajectory"]))
-        contacts = (batch["next_contacts"][:, k] * torch.as_tensor(stats.std["next_contacts"])
-                    + torch.as_tensor(stats.mean["next_contacts"]))
+        phase = denorm(fed["global_phase"], "global_phase")
+        data = denorm(batch["global_phase"][:, k + 1], "global_phase")
+        fut = denorm(batch["future_trajectory"][:, k], "future_trajectory")
+        contacts = denorm(batch["next_contacts"][:, k], "next_contacts")
         seated = (contacts[:, CONTACT_NAMES.index("pelvis")] > 0.5) | (fut[:, sit_col] > 0.5)
         torch.testing.assert_close(phase[seated], torch.ones_like(phase[seated]))
         same = seated == (data[:, 0] > 1 - 1e-4)
