@@ -226,8 +226,9 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
 def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
                      ) -> dict[str, float]:
     """The APDs of recorded/simulated sequences (resampled to ``fps``), with the same segment
-    definitions (sit onset = first pelvis contact), and the contact APD of their hand contacts
-    (chair frame, one group)."""
+    definitions (sit onset = first pelvis contact), their mean foot sliding (mm/frame at
+    ``fps``, as the methods' rows) and the contact APD of their hand contacts (chair frame,
+    one group)."""
     from couch.synthesis.features import canonical_chair, hand_targets, resample
 
     joints, onsets, contacts = [], [], []
@@ -248,6 +249,8 @@ def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
         chair_from_world = invert_transform(np.asarray(s.object_pose, np.float64))
         contacts.append(apply_transform(chair_from_world, np.stack(per_hand)))
     a_apd, s_apd = segment_apd(joints, onsets, fps)
-    return {"APD approach": a_apd, "APD sit": s_apd,
+    # The data's own foot sliding: the floor under the methods' skate figures.
+    skate = 1000 * float(np.mean([foot_sliding(j, fps) for j in joints]))
+    return {"APD approach": a_apd, "APD sit": s_apd, "skate mm/frame": skate,
             "contact APD cm": 100 * contact_apd(np.stack(contacts)[None])}
 

@@ -79,6 +79,9 @@ def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
         assert np.isfinite(row["skate mm/frame"]) and row["pen. depth cm"] >= 0
     gt = ground_truth_row([load_sequence(r) for r in find_sequences([motion_sim])])
     assert gt["APD approach"] > 0 and gt["APD sit"] > 0
+    # the simulator plants its stance feet: the data's own sliding is a small fraction of a
+    # millimetre per frame (a foot dragged along the floor at walking speed is ~40)
+    assert 0 < gt["skate mm/frame"] < 0.5, gt
 
 
 def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
