@@ -18,6 +18,8 @@ Public API so far (``couch-eval`` and its protocol are still to come):
   ``method="baseline"`` runs NSM+Control in the same loop), :class:`Scene`,
   :class:`SynthesisResult`, :func:`yaw_transform`.
 - ``sampling.py``: :func:`sample_contacts` (ContactNet samples projected onto the chair).
+- ``foot_lock.py``: :func:`lock_feet` (planted feet held by leg IK after synthesis;
+  ``Synthesizer(foot_lock=True)``), :class:`FootLockConfig`, :func:`planted_feet`.
 - ``export.py``: :func:`save_npz`, :func:`to_processed`, :func:`write_processed_sessions`.
 - ``precision.py``: :func:`packed_copy` (a network's large layers as fbgemm fp16 or int8 GEMMs
   for inference; ``Synthesizer(precision=...)``), :data:`PRECISIONS`.
@@ -34,6 +36,7 @@ from couch.synthesis.features import (
     SequenceFeatures,
     sequence_features,
 )
+from couch.synthesis.foot_lock import FootLockConfig, lock_feet, planted_feet
 from couch.synthesis.metrics import (
     ace,
     apd,
@@ -73,6 +76,7 @@ __all__ = [
     "FeatureCache",
     "FeatureConfig",
     "FeatureStats",
+    "FootLockConfig",
     "PoseNet",
     "PoseNetConfig",
     "Precision",
@@ -96,8 +100,10 @@ __all__ = [
     "format_intervals",
     "format_table",
     "load_trained",
+    "lock_feet",
     "packed_copy",
     "penetration",
+    "planted_feet",
     "pose_feature_apd",
     "project_contacts",
     "rollout",

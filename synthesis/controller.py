@@ -57,6 +57,7 @@ from couch.synthesis.features import (
     to_root,
     voxel_grid,
 )
+from couch.synthesis.foot_lock import lock_feet
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.nets import first_linear
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
@@ -272,12 +273,16 @@ class Synthesizer:
             2.4x the frames/s of one character; its evaluation equals fp32's); "int8" (within
             ~0.3 cm, 3.5x; it changes the motion: over 384 evaluation trials as many contacts
             reached, but fewer trials sat and the feet slid more).
+        foot_lock: after synthesis, hold each planted foot where its plant began by leg IK
+            (:mod:`couch.synthesis.foot_lock`; a post-process the networks do not see, so the
+            path and the hands are unchanged). Off by default: the networks alone.
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
                  timeout: float = 5.0, blend_radius: float = 1.0, walk_radius: float = 2.0,
-                 hand_ik: bool = False, precision: Precision = "fp32") -> None:
+                 hand_ik: bool = False, precision: Precision = "fp32",
+                 foot_lock: bool = False) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         if hand_ik and method != "couch":
@@ -308,7 +313,7 @@ class Synthesizer:
             self.control_net = packed_copy(self.control_net, precision)
         self.hold, self.reach, self.timeout = hold, reach, timeout
         self.blend_radius, self.walk_radius = blend_radius, walk_radius
-        self.hand_ik = hand_ik
+        self.hand_ik, self.foot_lock = hand_ik, foot_lock
         self._body_setup()
 
     def _setup_io(self, net: str) -> None:
@@ -639,6 +644,9 @@ class Synthesizer:
             steps.append({k: np.copy(v) for k, v in self._step(scene, state, series).items()})
         stack = {k: np.stack([st[k] for st in steps], 1) for k in steps[0]}
         b, t = stack["root"].shape[:2]
+        if self.foot_lock:
+            stack["jpos"], stack["jrot"], _ = lock_feet(stack["root"], stack["jpos"],
+                                                        stack["jrot"], self.rest, self.cfg.fps)
         flat = [stack[k].reshape(b * t, *stack[k].shape[2:]) for k in ("root", "jpos", "jrot")]
         go, bp, tr, joints = self.smpl(*flat)
         return SynthesisResult(

@@ -24,7 +24,7 @@ import numpy as np
 from couch.body import JOINT_INDEX, Skeleton
 from couch.geometry import normalize, two_bone_ik
 
-__all__ = ["ARMS", "ArmRig", "forward_positions", "reach"]
+__all__ = ["ARMS", "ArmRig", "bend_limbs", "forward_positions", "reach"]
 
 #: (shoulder, elbow, wrist) SMPL joint indices of the left and right arm.
 ARMS: tuple[tuple[int, int, int], ...] = tuple(
@@ -84,17 +84,38 @@ def reach(pelvis: np.ndarray, rot: np.ndarray, goals: np.ndarray, weights: np.nd
         the new rotations (B,J,3,3) (shoulders and elbows changed, wrists kept) and the change
         of every arm joint's position {joint: (B,3)} (elbows and wrists; zero where weight 0).
     """
+    return bend_limbs(pelvis, rot, ARMS, rig.palm, goals, weights, rig.skeleton)
+
+
+def bend_limbs(pelvis: np.ndarray, rot: np.ndarray, chains: tuple[tuple[int, int, int], ...],
+               offsets: np.ndarray, goals: np.ndarray, weights: np.ndarray,
+               skeleton: Skeleton) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Two-bone IK of several limbs (arms: shoulder-elbow-wrist, legs: hip-knee-ankle).
+
+    Args:
+        pelvis: (B,3) pelvis positions; rot: (B,J,3,3) global joint rotations, root frame.
+        chains: L (upper, middle, end) joint indices.
+        offsets: (L,3) the point of each end joint that is put on the goal, as an offset from
+            the end joint in the rest pose (moves with its global rotation; zeros: the joint).
+        goals: (B,L,3) goals of those points, root frame; ignored where ``weights`` is 0.
+        weights: (B,L) in [0,1]: the fraction of the way from the point to its goal.
+        skeleton: the rest skeleton.
+    Returns:
+        the new rotations (B,J,3,3) (upper and middle joints changed, end joints keep their
+        global rotation) and the change of each middle and end joint's position {joint: (B,3)}.
+    """
     rot = np.array(rot, dtype=np.float64)
     weights = np.clip(np.nan_to_num(np.asarray(weights, np.float64)), 0.0, 1.0)
-    pos = forward_positions(pelvis, rot, rig, tuple(j for arm in ARMS for j in arm))
+    pos = skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))),
+                           [j for chain in chains for j in chain])
     moved: dict[int, np.ndarray] = {}
-    for h, (s, e, w) in enumerate(ARMS):
+    for h, (s, e, w) in enumerate(chains):
         shoulder, elbow, wrist = pos[s], pos[e], pos[w]
-        palm = wrist + rot[:, w] @ rig.palm[h]
+        palm = wrist + rot[:, w] @ offsets[h]
         goal = np.where(weights[:, h, None] > 0, np.nan_to_num(goals[:, h]), palm)
         wrist_goal = wrist + weights[:, h, None] * (goal - palm)
-        upper, lower = rig.skeleton.bone_length(s, e), rig.skeleton.bone_length(e, w)
-        # bend towards where the elbow already points, away from the shoulder-wrist line
+        upper, lower = skeleton.bone_length(s, e), skeleton.bone_length(e, w)
+        # bend towards where the middle joint already points, away from the end-to-end line
         line = normalize(wrist - shoulder)
         pole = elbow - shoulder
         pole = pole - np.sum(pole * line, -1, keepdims=True) * line

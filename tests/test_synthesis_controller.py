@@ -10,7 +10,7 @@ import pytest
 import torch
 import trimesh
 
-from couch.body import load_body_model
+from couch.body import JOINT_INDEX, load_body_model
 from couch.rotations import matrix_to_axis_angle
 from couch.schema import read_processed, validate
 from couch.synthesis import (
@@ -22,6 +22,7 @@ from couch.synthesis import (
     yaw_transform,
 )
 from couch.synthesis.features import global_rotations, pose_features, root_transforms
+from couch.synthesis.metrics import foot_sliding
 from couch.tools.sim.chairs import make_chair, random_chair_spec, save_mesh
 from couch.tools.synthesize import main
 
@@ -146,6 +147,26 @@ def test_hand_ik_runs_in_the_controller(ci_run, scene, chair):
     assert np.all(np.isfinite(r.body_pose)) and r.control_on[..., 0].any()
 
 
+def test_foot_lock_edits_only_the_legs(ci_run, scene, chair, result):
+    """``foot_lock`` is a post-process: the same path, hands and upper body as without it,
+    the legs re-bent, and the feet slide no more (tests/test_synthesis_foot_lock.py checks
+    the hold itself)."""
+    syn = Synthesizer(ci_run.run_dir, "couch", foot_lock=True)
+    series = np.array([[chair[2], [np.nan] * 3]])
+    starts = np.array([[0.0, 2.5, np.pi], [1.0, 1.0, -2.0], [0.2, 0.9, np.pi]])
+    r = syn.synthesize(scene, starts, series, seconds=3.0)
+    np.testing.assert_array_equal(r.root, result.root)
+    np.testing.assert_array_equal(r.hands, result.hands)
+    legs = [JOINT_INDEX[f"{s}_{p}"] for s in ("left", "right")
+            for p in ("knee", "ankle", "foot")]
+    upper = [j for j in range(22) if j not in legs]
+    np.testing.assert_allclose(r.joints[:, :, upper], result.joints[:, :, upper], atol=1e-9)
+    slide = [foot_sliding(j, r.fps) for j in r.joints]
+    before = [foot_sliding(j, r.fps) for j in result.joints]
+    assert np.all(np.array(slide) <= np.array(before) + 1e-9), (slide, before)
+    assert not np.allclose(r.joints[:, :, legs], result.joints[:, :, legs])
+
+
 def test_exports(result, tmp_path):
     session = to_processed(result, 1)
     validate(session)
@@ -173,7 +194,7 @@ def test_cli_writes_motion_schema_and_preview(ci_run, chair, tmp_path, capsys):
     out = tmp_path / "out"
     code = main([str(ci_run.run_dir), "--chair", str(mesh), "--contacts", f"{left};none",
                  "--contacts", "none;none", "--seconds", "1", "--start", "0,1.2,180",
-                 "-o", str(out), "-q"])
+                 "--foot-lock", "-o", str(out), "-q"])
     assert code == 0, capsys.readouterr().err
     s = read_processed(out / "couch_000.h5")
     assert s.num_frames == 30 and s.object_name == "armchair"

@@ -86,14 +86,14 @@ def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
 
 def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     code = main([str(ci_run.run_dir), "-o", str(tmp_path), "--chairs", "1", "--trials", "2",
-                 "--seconds", "1", "--contact-samples", "0", "-q"])
+                 "--seconds", "1", "--contact-samples", "0", "--foot-lock", "-q"])
     assert code == 0, capsys.readouterr().err
     table = (tmp_path / "eval.md").read_text()
     assert "| couch |" in table and "| couch+ik |" in table and "| baseline |" in table
-    assert "fp32 weights" in table.splitlines()[0]  # the runtime precision is stated
+    assert "fp32 weights, feet locked" in table.splitlines()[0]  # the runtime is stated
     doc = json.loads((tmp_path / "eval.json").read_text())
     assert set(doc["rows"]) == {"couch", "couch+ik", "baseline"}
-    assert doc["settings"]["precision"] == "fp32"
+    assert doc["settings"]["precision"] == "fp32" and doc["settings"]["foot_lock"]
     # bootstrap intervals of every method, the reduction against the baseline for the others
     assert "bootstrap intervals over the 2 trials" in table and "- couch: ACE " in table
     assert set(doc["intervals"]) == set(doc["rows"])

@@ -69,6 +69,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--precision", default="fp32", choices=PRECISIONS,
                    help="weights of the networks' large layers at run time: fp32 as trained, fp16 "
                         "(outputs within ~1e-4 m, ~1.6x faster at batch 1) or int8 (CPU only)")
+    p.add_argument("--foot-lock", action="store_true",
+                   help="every method: hold planted feet by leg IK after synthesis (a "
+                        "post-process; off: the networks' own feet)")
     p.add_argument("-q", "--quiet", action="store_true")
     return p
 
@@ -87,7 +90,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         synths = {m: Synthesizer(args.baseline_run if m == "baseline" and args.baseline_run
                                  else args.run, m.removesuffix(IK_SUFFIX),
-                                 hand_ik=m.endswith(IK_SUFFIX), precision=args.precision)
+                                 hand_ik=m.endswith(IK_SUFFIX), precision=args.precision,
+                                 foot_lock=args.foot_lock)
                   for m in methods}
         if args.chair_dir:
             paths = sorted(p for p in Path(args.chair_dir).iterdir()
@@ -113,7 +117,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in vars(args).items() if k not in ("output", "quiet")}
     header = (f"couch-eval: {len(chairs)} chairs x {args.trials} trials x {args.seconds:g} s "
-              f"(seed {args.seed}, {args.precision} weights), {time.perf_counter() - t0:.0f} s\n\n")
+              f"(seed {args.seed}, {args.precision} weights"
+              f"{', feet locked' if args.foot_lock else ''}), "
+              f"{time.perf_counter() - t0:.0f} s\n\n")
     with atomic_path(out / "eval.md") as tmp:
         tmp.write_text(header + table + "\n")
     with atomic_path(out / "eval.json") as tmp:

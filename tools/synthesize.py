@@ -119,6 +119,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--hand-ik", action="store_true",
                    help="couch: arm IK puts each palm on its contact as ControlNet's phase "
                         "says it arrives (the paper's suggested fitting; off: networks alone)")
+    p.add_argument("--foot-lock", action="store_true",
+                   help="hold planted feet by leg IK after synthesis (foot-skate clean-up)")
     p.add_argument("--seconds", type=float, default=16.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--preview", type=int, default=1, metavar="K",
@@ -145,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.seconds <= 0:
             raise ValueError(f"--seconds must be > 0, got {args.seconds}")
         syn = Synthesizer(args.run, args.method, device=args.device, hand_ik=args.hand_ik,
-                          precision=args.precision)
+                          precision=args.precision, foot_lock=args.foot_lock)
         vertices, faces = load_mesh(args.chair)
         scene = Scene.from_mesh(vertices, faces, syn.cfg, name=Path(args.chair).stem)
         if args.sample_contacts is not None:
