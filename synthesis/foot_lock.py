@@ -62,6 +62,8 @@ def planted_feet(ankles: np.ndarray, fps: float, cfg: FootLockConfig = FootLockC
     ankles = np.asarray(ankles, np.float64)
     if ankles.ndim != 4 or ankles.shape[-1] != 3:
         raise ValueError(f"ankles must be (B,T,F,3), got {ankles.shape}")
+    if ankles.shape[1] < 2:  # no speed without a second frame: nothing to hold
+        return np.zeros(ankles.shape[:3], bool)
     step = np.linalg.norm(np.diff(ankles[..., [0, 2]], axis=1), axis=-1) * fps  # (B,T-1,F)
     # a frame's speed: the slower of its two neighbouring steps, so a plant's first and last
     # frames count

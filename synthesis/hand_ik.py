@@ -10,6 +10,9 @@ character holds the asked contact, and the arm blends in from the network's own 
 wrist keeps its global orientation (the palm stays as the network turned it); the elbow bends
 in the plane it was already bent in.
 
+:func:`bend_limbs` is the two-bone solver itself, for any shoulder-elbow-wrist or
+hip-knee-ankle chain (:mod:`couch.synthesis.foot_lock` bends the legs with it).
+
 Everything is in the character's root frame (metres), batch first, on the root-frame global
 joint rotations the controller carries (``jrot`` as 3x3) and the skeleton they give by forward
 kinematics of the rest bones (what :meth:`Synthesizer.smpl` writes out).
@@ -109,6 +112,7 @@ def bend_limbs(pelvis: np.ndarray, rot: np.ndarray, chains: tuple[tuple[int, int
     pos = skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))),
                            [j for chain in chains for j in chain])
     moved: dict[int, np.ndarray] = {}
+    # named for the arm; a leg's hip, knee and ankle take the same places
     for h, (s, e, w) in enumerate(chains):
         shoulder, elbow, wrist = pos[s], pos[e], pos[w]
         palm = wrist + rot[:, w] @ offsets[h]

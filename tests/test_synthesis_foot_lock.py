@@ -64,6 +64,7 @@ def test_planted_feet_are_low_and_slow():
     fast[0, :, 0, 1] = 0.0
     fast[0, :, 0, 2] = np.arange(6) * 0.1  # 3 m/s: a swing
     assert not planted_feet(fast, FPS).any()
+    assert not planted_feet(ankles[:, :1], FPS).any()  # one frame: no speed, no plant
     with pytest.raises(ValueError, match=r"\(B,T,F,3\)"):
         planted_feet(np.zeros((6, 2, 3)), FPS)
 
