@@ -23,7 +23,7 @@ from couch.body import JOINT_INDEX, Skeleton
 from couch.geometry import apply_transform
 from couch.rotations import axis_angle_to_matrix, matrix_to_6d, sixd_to_matrix
 from couch.synthesis.features import to_root
-from couch.synthesis.hand_ik import bend_limbs
+from couch.synthesis.hand_ik import bend_limbs, forward_positions
 
 __all__ = ["LEGS", "FootLockConfig", "lock_feet", "planted_feet"]
 
@@ -134,10 +134,11 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     skeleton = Skeleton(rest)
     flat = b * t
     rot = sixd_to_matrix(jrot.reshape(flat, j, 6))
-    pelvis = jpos.reshape(flat, j, 3)[:, 0]
+    pos = jpos.reshape(flat, j, 3)
+    pelvis = pos[:, 0]
     # The legs as the output shows them: forward kinematics of the rotations (the predicted
     # positions J also carries need not match them to the millimetre).
-    fk = skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))), hips + ankles + toes)
+    fk = forward_positions(pelvis, rot, skeleton, hips + ankles + toes)
     world = apply_transform(root, np.stack([fk[k] for k in hips + ankles + toes], 1)
                             .reshape(b, t, 6, 3))
     hip_w, ankle_w, toe_w = world[:, :, :2], world[:, :, 2:4], world[:, :, 4:]
@@ -147,10 +148,9 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     track = np.concatenate([ankle_w[..., [0, 2]], heading[..., None]], -1)  # (B,T,2,3)
     offset = np.zeros_like(track)
     hold = np.zeros(plant.shape, bool)
+    reach = [skeleton.bone_length(h, k) + skeleton.bone_length(k, a) for h, k, a in LEGS]
     for i in range(b):
-        for f in range(len(LEGS)):
-            hip, knee, ankle = LEGS[f]
-            leg = skeleton.bone_length(hip, knee) + skeleton.bone_length(knee, ankle)
+        for f, leg in enumerate(reach):
             offset[i, :, f], hold[i, :, f] = _hold_offsets(
                 track[i, :, f], plant[i, :, f], hip_w[i, :, f], ankle_w[i, :, f], leg, cfg)
     goal = ankle_w.copy()
@@ -159,7 +159,7 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     new_rot, moved = bend_limbs(pelvis, rot, LEGS, np.zeros((2, 3)),
                                 to_root(goal, root).reshape(flat, 2, 3),
                                 held.reshape(flat, 2).astype(np.float64), skeleton)
-    out = jpos.reshape(flat, j, 3).copy()
+    out = pos.copy()
     for k, d in moved.items():
         out[:, k] += d
     # The foot turns about the vertical through its ankle (the root frame's +Y is the
@@ -168,8 +168,7 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
                                           np.array([0.0, 1.0, 0.0]))).reshape(flat, 2, 3, 3)
     for f, (ankle, toe) in enumerate(zip(ankles, toes, strict=True)):
         out[:, toe] = out[:, ankle] + np.einsum("nij,nj->ni", turn[:, f],
-                                                jpos.reshape(flat, j, 3)[:, toe]
-                                                - jpos.reshape(flat, j, 3)[:, ankle])
+                                                pos[:, toe] - pos[:, ankle])
         new_rot[:, ankle] = turn[:, f] @ new_rot[:, ankle]
         new_rot[:, toe] = turn[:, f] @ new_rot[:, toe]
     return out.reshape(b, t, j, 3), matrix_to_6d(new_rot).reshape(b, t, j, 6), hold

@@ -21,6 +21,7 @@ kinematics of the rest bones (what :meth:`Synthesizer.smpl` writes out).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -53,11 +54,12 @@ class ArmRig:
         return Skeleton(self.rest)
 
 
-def forward_positions(pelvis: np.ndarray, rot: np.ndarray, rig: ArmRig,
-                      joints: tuple[int, ...]) -> dict[int, np.ndarray]:
+def forward_positions(pelvis: np.ndarray, rot: np.ndarray, rig: ArmRig | Skeleton,
+                      joints: Sequence[int]) -> dict[int, np.ndarray]:
     """Positions (B,3) of ``joints`` and their ancestors from the pelvis (B,3) and global
-    rotations rot (B,J,3,3) (:meth:`Skeleton.forward`)."""
-    return rig.skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))), list(joints))
+    rotations rot (B,J,3,3) (:meth:`Skeleton.forward` of the rig's or the given skeleton)."""
+    skeleton = rig.skeleton if isinstance(rig, ArmRig) else rig
+    return skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))), list(joints))
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -109,8 +111,7 @@ def bend_limbs(pelvis: np.ndarray, rot: np.ndarray, chains: tuple[tuple[int, int
     """
     rot = np.array(rot, dtype=np.float64)
     weights = np.clip(np.nan_to_num(np.asarray(weights, np.float64)), 0.0, 1.0)
-    pos = skeleton.forward(pelvis, dict(enumerate(np.moveaxis(rot, 1, 0))),
-                           [j for chain in chains for j in chain])
+    pos = forward_positions(pelvis, rot, skeleton, [j for chain in chains for j in chain])
     moved: dict[int, np.ndarray] = {}
     # named for the arm; a leg's hip, knee and ankle take the same places
     for h, (s, e, w) in enumerate(chains):

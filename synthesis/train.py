@@ -455,7 +455,7 @@ def pose_feedback(groups_out: Sequence[str], widths: Sequence[int], stats: Featu
 
     Measured: fine-tuned for 4 closed-loop epochs (12 held-out chairs x 8 trials, chair seeds
     0 / 1), ACE 4.95 / 5.78 cm with T and the phase fed back, 5.74 / 6.73 with J alone; trained
-    from scratch (384 trials), within the noise of J alone (README, *Results so far*).
+    from scratch (384 trials), within the noise of J alone (``docs/synthesis-history.md``).
     """
     columns, start = {}, 0
     for g, w in zip(groups_out, widths, strict=True):
