@@ -555,6 +555,7 @@ class Synthesizer:
         else:
             rel = np.where(mask[..., None], to_root(safe, s.root), 0.0)
             groups["contact_inputs"] = np.concatenate([rel.reshape(batch, 6), mask], -1)
+            groups["hand_mask"] = mask.astype(np.float64)
             hand_phase = mask.astype(np.float64)
         with torch.no_grad():
             pred, _ = self.pose_net(self._pose_inputs(groups), {

@@ -59,6 +59,7 @@ __all__ = [
     "SequenceRef",
     "WindowDataset",
     "build_cache",
+    "chair_ids",
     "collate_batch",
     "contact_rows",
     "feature_config_from_json",
@@ -397,14 +398,33 @@ def build_cache(refs: Sequence[SequenceRef], out_path: str | os.PathLike,
 # --------------------------------------------------------------------------------------------
 
 
+def chair_ids(cache: FeatureCache) -> list[str]:
+    """(S,) per-sequence chair identity: the object name and, where the cache has it, a digest
+    of the chair's own feature (``contact_condition``, the chair-centred voxel grid, which
+    depends on the chair's geometry alone).
+
+    Two sequences share an id only when they share the chair: the same name and the same
+    geometry. Simulated and augmented sequences name their chair by its kind ("sofa") while each
+    has its own geometry; held out by name alone, a validation "chair" was a whole kind (every
+    stool of 346 simulated sequences), which the networks then never trained on and which
+    chose their ``best.pt``.
+    """
+    if "contact_condition" not in cache.sequence_groups:
+        return list(cache.object_names)
+    grids = cache.group("contact_condition")
+    return [f"{name}:{hashlib.sha1(grid.tobytes()).hexdigest()[:16]}"
+            for name, grid in zip(cache.object_names, grids, strict=True)]
+
+
 def split(cache: FeatureCache, val_fraction: float = 0.1, seed: int = 0,
           by: str = "object") -> tuple[np.ndarray, np.ndarray]:
     """Train / validation sequence indices (sorted int64 arrays).
 
-    ``by="object"`` holds out whole chairs (``object_name``) when there are at least three
-    distinct ones, so validation measures generalisation to unseen chairs; otherwise (or with
-    ``by="sequence"``) whole sequences are held out. At least one sequence (chair) is held out
-    when there are two or more; a single sequence trains with an empty validation set.
+    ``by="object"`` holds out whole chairs (:func:`chair_ids`: name and geometry) when there
+    are at least three distinct ones, so validation measures generalisation to unseen chairs;
+    otherwise (or with ``by="sequence"``) whole sequences are held out. At least one sequence
+    (chair) is held out when there are two or more; a single sequence trains with an empty
+    validation set.
     """
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
@@ -412,11 +432,12 @@ def split(cache: FeatureCache, val_fraction: float = 0.1, seed: int = 0,
         raise ValueError(f"split by 'object' or 'sequence', got {by!r}")
     rng = np.random.default_rng(seed)
     s = cache.num_sequences
-    objects = sorted(set(cache.object_names))
+    ids = chair_ids(cache) if by == "object" else []
+    objects = sorted(set(ids))
     if by == "object" and len(objects) >= 3:
         n_val = min(len(objects) - 1, max(1, round(val_fraction * len(objects))))
         held = set(rng.permutation(objects)[:n_val].tolist()) if val_fraction > 0 else set()
-        val = np.array([i for i in range(s) if cache.object_names[i] in held], dtype=np.int64)
+        val = np.array([i for i in range(s) if ids[i] in held], dtype=np.int64)
     else:
         n_val = min(s - 1, max(1, round(val_fraction * s))) if val_fraction > 0 else 0
         val = np.sort(rng.permutation(s)[:n_val]).astype(np.int64)

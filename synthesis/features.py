@@ -891,9 +891,10 @@ def layout(cfg: FeatureConfig | None = None) -> dict[str, dict[str, dict[str, in
         },
     }
     # NSM+Control baseline (paper Sec. 5): the PoseNet with the raw hand contacts as its control
-    # input instead of the ControlNet's C⁺; same targets, same order otherwise.
+    # input instead of the ControlNet's C⁺; same targets, same order otherwise. ``hand_mask``
+    # (which hands have a contact) is its gating input beside the global phase.
     pose_inputs = out["posenet"]["inputs"]
-    baseline_inputs: dict[str, int] = {"contact_inputs": 8}
+    baseline_inputs: dict[str, int] = {"contact_inputs": 8, "hand_mask": 2}
     baseline_inputs.update({k: v for k, v in pose_inputs.items()
                             if k not in ("control_root_positions", "control_phases")})
     out["baseline"] = {"inputs": baseline_inputs, "targets": dict(out["posenet"]["targets"])}

@@ -95,11 +95,14 @@ ENCODER_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
 }
 # The NSM+Control baseline reads the raw hand contacts where PoseNet reads ControlNet's C+.
 ENCODER_GROUPS["baseline"] = {**ENCODER_GROUPS["pose"], "C": ("contact_inputs",)}
-#: Gating features per PoseNet variant. The baseline has no local phases (it never sees
-#: ControlNet's output), so it gates on the contact inputs (targets and masks) instead.
+#: Gating features per PoseNet variant. NSM's gating network reads the phase and the goal
+#: action, not where the goal is; the baseline has no local phases (it never sees ControlNet's
+#: output), so it gates on the global phase and which hands have a contact (the action), and
+#: reads the contacts' positions through its C encoder alone. (Gating on the positions too, as
+#: couch did before 2026-11-27, is a stronger adaptation than NSM+Control: see the README.)
 GATING_GROUPS: dict[str, tuple[str, ...]] = {
     "pose": ("global_phase", "control_phases"),
-    "baseline": ("global_phase", "contact_inputs"),
+    "baseline": ("global_phase", "hand_mask"),
 }
 #: PoseNet inputs the runtime builds from its own previous predictions (see ``input_noise``).
 FED_BACK_GROUPS: tuple[str, ...] = ("joint_positions", "joint_rotations", "joint_velocities",

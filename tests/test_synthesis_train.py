@@ -25,6 +25,7 @@ from couch.synthesis.data import (
     FrameDataset,
     WindowDataset,
     build_cache,
+    chair_ids,
     collate_batch,
     contact_rows,
     find_sequences,
@@ -281,15 +282,54 @@ def test_find_sequences_reads_augmented_groups(sim, tmp_path):
     assert find_sequences([path, path]) == refs  # duplicates dropped
 
 
+def test_baseline_gates_on_phase_and_which_hands_not_where(trained):
+    """NSM+Control: the gating network reads the phase and the action (which hands have a
+    contact); the contacts' positions reach the baseline through its C encoder only."""
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, _ = split(cache)
+    rows = cache.sequence_rows(train_seqs)[:32]
+    model, stats, meta = load_trained(trained.run_dir, "baseline", which="last")
+    ds = FrameDataset(cache, meta["groups_in"], meta["groups_out"], rows, stats)
+    x, _ = collate_batch(ds.__getitems__(range(len(rows))))
+    moved = dict(x)
+    moved["contact_inputs"] = x["contact_inputs"].clone()
+    moved["contact_inputs"][:, :6] += torch.randn(len(rows), 6)  # positions, in std units
+    with torch.no_grad():
+        gate = model.gate(pose_inputs(x, "baseline"))
+        assert torch.equal(model.gate(pose_inputs(moved, "baseline")), gate)
+        assert not torch.equal(model(pose_inputs(moved, "baseline"))[0],
+                               model(pose_inputs(x, "baseline"))[0])
+        flipped = dict(x)
+        flipped["hand_mask"] = -x["hand_mask"] + 1.0
+        assert not torch.allclose(model.gate(pose_inputs(flipped, "baseline")), gate)
+
+
 def test_split_holds_out_chairs(trained):
     cache = FeatureCache(trained.cache_path)
     train_seqs, val_seqs = split(cache)
-    assert len(val_seqs) == 1 and len(train_seqs) == cache.num_sequences - 1  # 2 chairs: by seq
+    assert len(val_seqs) == 1 and len(train_seqs) == cache.num_sequences - 1
+    # Three chairs, each in one or two sequences (same name, same geometry): a chair is held
+    # out whole.
     cache.object_names = ["a", "b", "c", "a", "b"]
+    grids = cache.group("contact_condition").copy()
+    grids[3], grids[4] = grids[0], grids[1]
+    cache._data["contact_condition"] = grids
     train_seqs, val_seqs = split(cache, val_fraction=0.3, seed=1)
     held = {cache.object_names[i] for i in val_seqs}
     assert held and held.isdisjoint(cache.object_names[i] for i in train_seqs)
     assert sorted([*train_seqs, *val_seqs]) == list(range(cache.num_sequences))
+    # Simulated and augmented sequences name the chair by its kind and each has its own
+    # geometry: the kinds are not chairs, and none is held out whole.
+    cache.object_names = ["stool", "sofa", "sofa", "sofa", "stool"]
+    grids = grids.copy()
+    grids[3] += 1.0
+    grids[4] += 1.0
+    cache._data["contact_condition"] = grids
+    ids = chair_ids(cache)
+    assert len(set(ids)) == 5
+    assert all(i.startswith(n) for i, n in zip(ids, cache.object_names, strict=True))
+    train_seqs, val_seqs = split(cache, val_fraction=0.2, seed=0)
+    assert len(val_seqs) == 1 and len(train_seqs) == 4
 
 
 def test_main_reports_bad_inputs(tmp_path, capsys):
