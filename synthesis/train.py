@@ -742,8 +742,9 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
     meta = {"net": net, "train_config": json.loads(cfg.to_json()), **task.meta,
             "feature_config": json.loads(json.dumps(dataclasses.asdict(cache.config))),
             "cache": str(cache.path), "cache_hash": cache.source_hash,
-            "split": {"train": [cache.names[i] for i in train_seqs],
-                      "val": [cache.names[i] for i in val_seqs]}}
+            # sources, not names: folders of simulated sequences repeat the names
+            "split": {"train": [cache.sources[i] for i in train_seqs],
+                      "val": [cache.sources[i] for i in val_seqs]}}
     # Not sort_keys: PoseNet concatenates its encoder and gating groups in dict order.
     meta_json = json.dumps(meta)
 
