@@ -77,8 +77,15 @@ def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
         assert row["ACE cm"] >= 0 and 0 <= row["AP@5 %"] <= 100
         assert raw[method].shape == (3, 2)
         assert np.isfinite(row["skate mm/frame"]) and row["pen. depth cm"] >= 0
-    gt = ground_truth_row([load_sequence(r) for r in find_sequences([motion_sim])])
+        # one chair: pooling over the chairs is that chair's contact APD
+        assert row["contact APD pooled cm"] == pytest.approx(row["contact APD cm"])
+    sequences = [load_sequence(r) for r in find_sequences([motion_sim])]
+    gt = ground_truth_row(sequences)
     assert gt["APD approach"] > 0 and gt["APD sit"] > 0
+    # every simulated sequence has its own chair: no per-chair diversity to measure, only the
+    # pooled one; two recordings of each chair with the same contacts have none per chair
+    assert np.isnan(gt["contact APD cm"]) and gt["contact APD pooled cm"] > 10
+    assert ground_truth_row(sequences[:2] * 2)["contact APD cm"] == 0.0
     # the simulator plants its stance feet: the data's own sliding is a small fraction of a
     # millimetre per frame (a foot dragged along the floor at walking speed is ~40)
     assert 0 < gt["skate mm/frame"] < 0.5, gt
