@@ -59,6 +59,7 @@ __all__ = [
     "SequenceRef",
     "WindowDataset",
     "build_cache",
+    "chair_id",
     "chair_ids",
     "collate_batch",
     "contact_rows",
@@ -398,6 +399,13 @@ def build_cache(refs: Sequence[SequenceRef], out_path: str | os.PathLike,
 # --------------------------------------------------------------------------------------------
 
 
+def chair_id(name: str, geometry: np.ndarray) -> str:
+    """A chair's identity: its name and a digest of an array that depends on its geometry
+    alone (its mesh in the chair frame, or its chair-centred feature), as float32."""
+    digest = hashlib.sha1(np.ascontiguousarray(geometry, np.float32).tobytes()).hexdigest()
+    return f"{name}:{digest[:16]}"
+
+
 def chair_ids(cache: FeatureCache) -> list[str]:
     """(S,) per-sequence chair identity: the object name and, where the cache has it, a digest
     of the chair's own feature (``contact_condition``, the chair-centred voxel grid, which
@@ -412,8 +420,7 @@ def chair_ids(cache: FeatureCache) -> list[str]:
     if "contact_condition" not in cache.sequence_groups:
         return list(cache.object_names)
     grids = cache.group("contact_condition")
-    return [f"{name}:{hashlib.sha1(grid.tobytes()).hexdigest()[:16]}"
-            for name, grid in zip(cache.object_names, grids, strict=True)]
+    return [chair_id(name, grid) for name, grid in zip(cache.object_names, grids, strict=True)]
 
 
 def split(cache: FeatureCache, val_fraction: float = 0.1, seed: int = 0,

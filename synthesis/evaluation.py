@@ -27,7 +27,6 @@ drawn from the chair's contact candidates (armrest tops, the seat's front corner
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -38,6 +37,7 @@ from couch.body import CONTACT_NAMES, JOINT_INDEX, load_body_model
 from couch.geometry import apply_transform, invert_transform
 from couch.schema import ProcessedSession
 from couch.synthesis.controller import HAND_REACH_X, Scene, SynthesisResult, Synthesizer
+from couch.synthesis.data import chair_id
 from couch.synthesis.features import root_transforms, to_root
 from couch.synthesis.metrics import (
     AP_THRESHOLDS,
@@ -241,8 +241,7 @@ def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
     joints, onsets, contacts, chairs = [], [], [], []
     for s in sessions:
         s = canonical_chair(s)
-        chairs.append(s.object_name + ":" + hashlib.sha1(
-            np.ascontiguousarray(s.object_vertices, np.float32).tobytes()).hexdigest())
+        chairs.append(chair_id(s.object_name, s.object_vertices))
         if abs(s.fps - fps) > 1e-6:
             s = resample(s, fps)
         j = np.asarray(s.joints, np.float64)
