@@ -4,7 +4,8 @@ Per chair (held out from training): ``trials`` characters start at random points
 the seat, within ±120° of the chair's front, facing the chair ±45° (as the data's approaches
 start), and are asked for a random contact set (left hand only, right hand only, or both)
 drawn from the chair's contact candidates (armrest tops, the seat's front corners:
-:func:`contact_candidates`); every method gets the same starts and contacts and runs for
+:func:`contact_candidates`; both hands on the same part and within :data:`HAND_SPAN` of each
+other, as a seated person holds them); every method gets the same starts and contacts and runs for
 ``seconds`` (paper: 16 s). Metrics (:mod:`.metrics`):
 
 - ACE (cm) and AP@3/5/7/9 cm (%): closest approach of each hand's surface (the body model's
@@ -51,8 +52,8 @@ from couch.synthesis.metrics import (
 )
 from couch.synthesis.sampling import sample_contacts
 
-__all__ = ["EvalChair", "contact_candidates", "evaluate", "ground_truth_row", "segment_apd",
-           "trial_setup"]
+__all__ = ["HAND_SPAN", "EvalChair", "contact_candidates", "evaluate", "ground_truth_row",
+           "segment_apd", "trial_setup"]
 
 HAND_JOINTS = (JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"])
 
@@ -66,22 +67,30 @@ class EvalChair:
     faces: np.ndarray
 
 
-def contact_candidates(vertices: np.ndarray, faces: np.ndarray) -> dict[str, list[np.ndarray]]:
-    """Chair-frame hand contact candidates per hand, from the part segmentation
+#: The widest two-hand contact set a trial asks for (m between the contacts): 95 % of the
+#: simulated sitters' two-hand holds are narrower (0.77 m; median 0.44-0.54 m per chair kind).
+#: Both armrests of a sofa 1.2-1.8 m wide are out of a seated person's reach together.
+HAND_SPAN = 0.8
+
+
+def contact_candidates(vertices: np.ndarray, faces: np.ndarray
+                       ) -> dict[str, dict[str, list[np.ndarray]]]:
+    """Chair-frame hand contact candidates per hand and part, from the part segmentation
     (:func:`couch.augment.segment_parts`): the armrest's top (centre and front) and the seat's
     front corner on that hand's side (+X is the sitter's left), 5 cm in from the front edge and
     at most ``HAND_REACH_X`` out from the centre: where the data's hands go (the paper samples
     its test contacts from the dataset; the simulated sitters touch the seat at its front
     corners, beside the thighs, and the armrests anywhere from their middle forwards).
-    ``{"left": [...], "right": [...]}``."""
+    ``{"left": {"armrest": [...], "seat": [...]}, "right": {...}}`` (a part the chair lacks
+    is absent)."""
     from couch.augment import segment_parts
 
     parts = segment_parts(vertices, faces)
-    out: dict[str, list[np.ndarray]] = {"left": [], "right": []}
+    out: dict[str, dict[str, list[np.ndarray]]] = {"left": {}, "right": {}}
     for side, sign in (("left", 1.0), ("right", -1.0)):
         arm = parts.frames.get(f"{side}_armrest")
         if arm is not None:
-            out[side] += [arm.centre, arm.to_world(np.array([[0.0, 0.6, 0.0]]))[0]]
+            out[side]["armrest"] = [arm.centre, arm.to_world(np.array([[0.0, 0.6, 0.0]]))[0]]
         seat = parts.frames.get("seat")
         if seat is not None:
             half_x = abs(seat.u[0]) * seat.half_extents[0] + abs(seat.v[0]) * seat.half_extents[1]
@@ -89,13 +98,32 @@ def contact_candidates(vertices: np.ndarray, faces: np.ndarray) -> dict[str, lis
             corner = seat.centre.copy()
             corner[0] += sign * min(0.85 * half_x, HAND_REACH_X)
             corner[2] += max(half_z - 0.05, 0.0)
-            out[side].append(corner)
+            out[side]["seat"] = [corner]
     return out
 
 
-def trial_setup(scene: Scene, candidates: Mapping[str, list[np.ndarray]], trials: int,
-                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Random starts (trials, 3) (x, z, heading) and contact sets (trials, 2, 3) in the world."""
+def _hand_pairs(candidates: Mapping[str, Mapping[str, list[np.ndarray]]]
+                ) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Two-hand contact sets a seated person can hold, per part: a left and a right candidate
+    of the same part (the data's sitters put both hands on the armrests or both on the seat,
+    never one of each) at most :data:`HAND_SPAN` apart."""
+    out: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for part in sorted(set(candidates["left"]) & set(candidates["right"])):
+        pairs = [(a, b) for a in candidates["left"][part] for b in candidates["right"][part]
+                 if np.linalg.norm(a - b) <= HAND_SPAN]
+        if pairs:
+            out[part] = pairs
+    return out
+
+
+def trial_setup(scene: Scene, candidates: Mapping[str, Mapping[str, list[np.ndarray]]],
+                trials: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random starts (trials, 3) (x, z, heading) and contact sets (trials, 2, 3) in the world.
+
+    A third of the trials ask for the left hand, a third the right, a third both. A one-hand
+    contact is any of that hand's ``candidates`` (:func:`contact_candidates`); a two-hand set
+    is drawn from a part both hands have, then from its pairs within :data:`HAND_SPAN` (a
+    chair with no such pair gets a one-hand trial instead)."""
     goal = scene.goal
     angle = rng.uniform(-2 * np.pi / 3, 2 * np.pi / 3, trials)  # around the chair's front
     radius = rng.uniform(2.0, 4.0, trials)
@@ -108,11 +136,23 @@ def trial_setup(scene: Scene, candidates: Mapping[str, list[np.ndarray]], trials
     towards = np.arctan2(goal[0, 3] - x, goal[2, 3] - z)
     starts = np.stack([x, z, towards + rng.uniform(-np.pi / 4, np.pi / 4, trials)], -1)
     sets = np.full((trials, 2, 3), np.nan)
+    single = {side: [p for points in candidates[side].values() for p in points]
+              for side in ("left", "right")}
+    pairs = _hand_pairs(candidates)
     kinds = rng.integers(0, 3, trials)  # 0 left, 1 right, 2 both
     for i, kind in enumerate(kinds):
-        for h, side in enumerate(("left", "right")):
-            if (kind == 2 or kind == h) and candidates[side]:
-                c = candidates[side][rng.integers(len(candidates[side]))]
+        if kind == 2 and pairs:
+            part = list(pairs)[rng.integers(len(pairs))]
+            chosen = pairs[part][rng.integers(len(pairs[part]))]
+        else:
+            h = int(kind) if kind < 2 else int(rng.integers(2))
+            side = ("left", "right")[h]
+            if not single[side]:
+                continue
+            chosen = [None, None]
+            chosen[h] = single[side][rng.integers(len(single[side]))]
+        for h, c in enumerate(chosen):
+            if c is not None:
                 sets[i, h] = (scene.world_from_chair @ np.append(c, 1.0))[:3]
     return starts, sets
 

@@ -31,10 +31,11 @@ def armchair():
 
 def test_contact_candidates_lie_on_the_chair_on_their_side(armchair):
     cands = contact_candidates(armchair.vertices, armchair.faces)
-    assert len(cands["left"]) == 3 and len(cands["right"]) == 3  # 2 on the armrest + seat edge
+    for side in ("left", "right"):  # 2 on the armrest + the seat's front corner
+        assert {k: len(v) for k, v in cands[side].items()} == {"armrest": 2, "seat": 1}
     mesh = trimesh.Trimesh(armchair.vertices, armchair.faces, process=False)
     for side, sign in (("left", 1), ("right", -1)):
-        pts = np.stack(cands[side])
+        pts = np.stack([p for points in cands[side].values() for p in points])
         assert np.all(sign * pts[:, 0] > 0.1)  # +X is the sitter's left
         _, dist, _ = trimesh.proximity.closest_point(mesh, pts)
         assert dist.max() < 0.01
@@ -53,6 +54,35 @@ def test_trial_setup_draws_starts_around_the_front(ci_run, armchair):
     assert np.all(np.abs(off) <= np.pi / 4) and np.ptp(off) > np.pi / 4  # facing it, varied
     asked = np.isfinite(sets[..., 0])
     assert asked.any(1).all() and asked.all(1).any() and (~asked).any()
+
+
+def test_two_hand_sets_are_ones_a_seated_person_can_hold(ci_run, armchair):
+    """Both hands on one part (both armrests or both seat corners) and within HAND_SPAN: on a
+    wide sofa both armrests together are out of reach, so its two-hand trials use the seat,
+    while one-hand trials still ask for its armrests."""
+    from couch.synthesis.evaluation import HAND_SPAN
+    from couch.tools.sim.chairs import ChairSpec
+
+    syn = Synthesizer(ci_run.run_dir, "couch")
+    sofa = make_chair(ChairSpec.for_kind("sofa"))
+    for chair in (armchair, EvalChair("sofa", sofa.vertices, sofa.faces)):
+        cands = contact_candidates(chair.vertices, chair.faces)
+        scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
+        _, sets = trial_setup(scene, cands, 90, np.random.default_rng(1))
+        seat_y = (scene.world_from_chair @ np.append(cands["left"]["seat"][0], 1.0))[1]
+        count = np.isfinite(sets[..., 0]).sum(1)
+        both, one = sets[count == 2], sets[count == 1]
+        assert len(both) > 15 and len(one) > 40
+        assert np.linalg.norm(both[:, 0] - both[:, 1], axis=-1).max() <= HAND_SPAN
+        assert np.abs(both[:, 0, 1] - both[:, 1, 1]).max() < 0.01  # one part: one height
+        both_on_arms = both[:, 0, 1] > seat_y + 0.05
+        one_on_arms = np.nanmax(one[..., 1], axis=1) > seat_y + 0.05
+        assert one_on_arms.any() and not one_on_arms.all()
+        arms = np.linalg.norm(cands["left"]["armrest"][0] - cands["right"]["armrest"][0])
+        if chair.name == "sofa":
+            assert arms > HAND_SPAN and not both_on_arms.any()
+        else:
+            assert arms < HAND_SPAN and both_on_arms.any() and not both_on_arms.all()
 
 
 def test_segment_apd_is_zero_for_identical_motions_and_grows_with_difference():
@@ -133,7 +163,8 @@ def test_hand_surface_points_are_on_the_asked_hands(ci_run, armchair):
     syn = Synthesizer(ci_run.run_dir, "couch")
     scene = Scene.from_mesh(armchair.vertices, armchair.faces, syn.cfg)
     cands = contact_candidates(armchair.vertices, armchair.faces)
-    sets = np.array([[cands["left"][0], [np.nan] * 3], [cands["left"][0], cands["right"][0]]])
+    left, right = cands["left"]["armrest"][0], cands["right"]["armrest"][0]
+    sets = np.array([[left, [np.nan] * 3], [left, right]])
     r = syn.synthesize(scene, np.array([[0.0, 2.0, np.pi], [0.5, 2.0, np.pi]]), sets[:, None],
                        seconds=0.3)
     sdf = SignedDistanceGrid.from_mesh(armchair.vertices, armchair.faces)
