@@ -117,3 +117,40 @@ def test_joints_move_at_human_speeds(case, sequences):
     arms = slice(16, 24)  # shoulders, elbows, wrists, hands
     assert speed[:, arms].max() < 4.0, speed[:, arms].max()
     assert speed.max() < 6.0, (speed.max(), speed.max(0).argmax())
+
+
+def test_a_sofa_is_sat_on_along_its_length_and_a_chair_in_its_middle(models):
+    """People sit anywhere along a sofa, often at an end with an arm on the armrest: the
+    seated pelvis moves along a sofa's seat (within 0.3 m of its side edges, half the time at
+    an end) and its armrests become reachable; a chair is sat on in its middle."""
+    from couch.tools.sim.chairs import ChairSpec, make_chair
+    from couch.tools.sim.motion import generate_motion
+    from couch.tools.sim.scene import chair_seat_geometry
+
+    full, _ = models
+    for kind in ("sofa", "armchair"):
+        chair = make_chair(ChairSpec.for_kind(kind))
+        seat = chair_seat_geometry(chair.vertices, chair.faces, chair.landmarks,
+                                   chair.face_parts)
+        half = max(abs(p[0]) for k in ("left_seat", "right_seat")
+                   for p, _ in seat.hand_targets[k])
+        xs, parts = [], []
+        for seed in range(8):
+            try:
+                m = generate_motion(full, seat, np.random.default_rng(seed),
+                                    interaction=("left_hand", "right_hand")[seed % 2])
+            except ValueError:
+                continue
+            seated = next(p for p in m.phases if p[0] == "seated")
+            mid = np.searchsorted(m.time, 0.5 * (seated[1] + seated[2]))
+            rest = full.rest_joints(torch.as_tensor(m.betas[None], dtype=full.dtype))
+            xs.append(m.transl[mid, 0] + float(rest[0, 0, 0]) - seat.seat_center[0])
+            parts += [c[3] for c in m.hand_contacts.values()]
+        xs = np.array(xs)
+        assert len(xs) >= 6
+        if kind == "sofa":
+            assert np.abs(xs).max() <= half - 0.3 + 0.02 and np.ptp(xs) > 0.4
+            assert np.isclose(np.abs(xs), half - 0.3, atol=0.02).sum() >= 2  # at an end
+            assert any(p.endswith("armrest") for p in parts)
+        else:
+            assert np.abs(xs).max() < 0.02

@@ -78,6 +78,7 @@ class MotionConfig:
     stand_and_leave: float = 0.5  # probability of standing up and walking away
     beta_std: float = 1.0
     max_penetration: float = 0.018  # m; deeper sequences are rejected (MotionRejected)
+    sitter_half_room: float = 0.3  # m from the pelvis to a seat's side edge, at the closest
 
 
 @dataclasses.dataclass
@@ -378,7 +379,15 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         body.hip_below_pelvis)
 
     # Seated configuration: pelvis over the seat, feet planted in front of it.
-    seat_c = np.asarray(seat.seat_center, float)
+    seat_c = np.asarray(seat.seat_center, float).copy()
+    # A seat wider than one sitter (a sofa) is sat on anywhere along it, half the time at an
+    # end, beside an armrest (which is then within reach), as people sit on sofas; a chair's
+    # seat is sat on in the middle (and draws nothing, so its sequences are as before).
+    seat_x = [abs(p[0]) for k in ("left_seat", "right_seat") for p, _ in seat.hand_targets.get(
+        k, [])]
+    room = (max(seat_x) if seat_x else 0.0) - cfg.sitter_half_room
+    if room > 0.1:
+        seat_c[0] += rng.choice([-1.0, 1.0]) * room * (1.0 if rng.random() < 0.5 else rng.random())
     if seat.back_front_z is not None:
         pelvis_z = seat.back_front_z + body.buttock_back + rng.uniform(0.02, 0.06)
     else:
