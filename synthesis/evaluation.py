@@ -28,6 +28,7 @@ other, as a seated person holds them); every method gets the same starts and con
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -52,8 +53,8 @@ from couch.synthesis.metrics import (
 )
 from couch.synthesis.sampling import sample_contacts
 
-__all__ = ["HAND_SPAN", "EvalChair", "contact_candidates", "evaluate", "ground_truth_row",
-           "segment_apd", "trial_setup"]
+__all__ = ["HAND_SPAN", "EvalChair", "contact_breakdown", "contact_candidates", "evaluate",
+           "ground_truth_row", "segment_apd", "trial_setup"]
 
 HAND_JOINTS = (JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"])
 
@@ -117,8 +118,10 @@ def _hand_pairs(candidates: Mapping[str, Mapping[str, list[np.ndarray]]]
 
 
 def trial_setup(scene: Scene, candidates: Mapping[str, Mapping[str, list[np.ndarray]]],
-                trials: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Random starts (trials, 3) (x, z, heading) and contact sets (trials, 2, 3) in the world.
+                trials: int, rng: np.random.Generator
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random starts (trials, 3) (x, z, heading), contact sets (trials, 2, 3) in the world and
+    the part each contact is on (trials, 2) (``"armrest"``, ``"seat"``; ``""``: none asked).
 
     A third of the trials ask for the left hand, a third the right, a third both. A one-hand
     contact is any of that hand's ``candidates`` (:func:`contact_candidates`); a two-hand set
@@ -136,14 +139,15 @@ def trial_setup(scene: Scene, candidates: Mapping[str, Mapping[str, list[np.ndar
     towards = np.arctan2(goal[0, 3] - x, goal[2, 3] - z)
     starts = np.stack([x, z, towards + rng.uniform(-np.pi / 4, np.pi / 4, trials)], -1)
     sets = np.full((trials, 2, 3), np.nan)
-    single = {side: [p for points in candidates[side].values() for p in points]
+    parts = np.full((trials, 2), "", dtype=object)
+    single = {side: [(part, p) for part, points in candidates[side].items() for p in points]
               for side in ("left", "right")}
     pairs = _hand_pairs(candidates)
     kinds = rng.integers(0, 3, trials)  # 0 left, 1 right, 2 both
     for i, kind in enumerate(kinds):
         if kind == 2 and pairs:
             part = list(pairs)[rng.integers(len(pairs))]
-            chosen = pairs[part][rng.integers(len(pairs[part]))]
+            chosen = [(part, c) for c in pairs[part][rng.integers(len(pairs[part]))]]
         else:
             h = int(kind) if kind < 2 else int(rng.integers(2))
             side = ("left", "right")[h]
@@ -153,8 +157,9 @@ def trial_setup(scene: Scene, candidates: Mapping[str, Mapping[str, list[np.ndar
             chosen[h] = single[side][rng.integers(len(single[side]))]
         for h, c in enumerate(chosen):
             if c is not None:
-                sets[i, h] = (scene.world_from_chair @ np.append(c, 1.0))[:3]
-    return starts, sets
+                parts[i, h] = c[0]
+                sets[i, h] = (scene.world_from_chair @ np.append(c[1], 1.0))[:3]
+    return starts, sets, parts
 
 
 def _sit_onsets(result: SynthesisResult) -> np.ndarray:
@@ -206,9 +211,12 @@ def _body_metrics(result: SynthesisResult, sets: np.ndarray, sdf, model
 def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair], *,
              trials: int = 8, seconds: float = 16.0, seed: int = 0,
              contact_samples: int = 0, progress: bool = True
-             ) -> tuple[dict[str, dict[str, float]], dict[str, np.ndarray]]:
+             ) -> tuple[dict[str, dict[str, float]], dict[str, np.ndarray], np.ndarray]:
     """Run the protocol. Returns (table rows ``{method: {metric: value}}``, raw per-trial
-    closest hand-surface distances ``{method: (chairs*trials, 2)}`` in m).
+    closest hand-surface distances ``{method: (chairs*trials, 2)}`` in m, and what each asked
+    contact was (chairs*trials, 2): ``"<chair kind> <part>"``, the kind being the chair's name
+    without a trailing ``_<number>`` (``"sofa armrest"``; ``""``: none asked), for
+    :func:`contact_breakdown`).
 
     ``contact_samples`` > 0 also samples that many ContactNet contact sets per chair from each
     method's run and reports their contact APD (cm), within each chair and pooled.
@@ -224,11 +232,14 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
     extra: dict[str, dict[str, list[float]]] = {m: {"skate": [], "pen": [], "over": [],
                                                     "sat": []} for m in synthesizers}
     sampled: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    labels: list[np.ndarray] = []
     first = next(iter(synthesizers.values()))
     for chair in tqdm(chairs, desc="chairs", disable=not progress):
         scene = Scene.from_mesh(chair.vertices, chair.faces, first.cfg, name=chair.name)
-        starts, sets = trial_setup(scene, contact_candidates(chair.vertices, chair.faces),
-                                   trials, rng)
+        starts, sets, parts = trial_setup(
+            scene, contact_candidates(chair.vertices, chair.faces), trials, rng)
+        kind = re.sub(r"_\d+$", "", chair.name)
+        labels.append(np.where(parts == "", "", kind + " " + parts.astype(str)))
         sdf = SignedDistanceGrid.from_mesh(chair.vertices, chair.faces)
         for method, syn in synthesizers.items():
             r = syn.synthesize(scene, starts, sets[:, None], seconds)
@@ -266,7 +277,28 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
             row["contact APD cm"] = 100 * contact_apd(samples)
             row["contact APD pooled cm"] = 100 * contact_apd(samples.reshape(1, -1, 2, 3))
         rows[method] = row
-    return rows, raw
+    return rows, raw, np.concatenate(labels)
+
+
+def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
+                      threshold: float = 0.05) -> dict[str, dict[str, float]]:
+    """ACE (cm) and AP@``threshold`` (%) per kind of asked contact: where a method misses.
+
+    ``distances``: method → (N, 2) closest hand distances (m, NaN: none asked), ``labels``
+    (N, 2) what each contact was (:func:`evaluate`'s third output). Returns ``{label: {"n":
+    count, "<method> ACE cm": ..., "<method> AP@5 %": ...}}``, labels sorted."""
+    labels = np.asarray(labels).astype(str)
+    out: dict[str, dict[str, float]] = {}
+    for label in sorted(set(labels.ravel()) - {""}):
+        sel = labels == label
+        row: dict[str, float] = {"n": float(sel.sum())}
+        for method, d in distances.items():
+            d = np.asarray(d, np.float64)[sel]
+            k = round(threshold * 100)
+            row[f"{method} ACE cm"] = 100 * ace(d)
+            row[f"{method} AP@{k} %"] = 100 * contact_precision(d, [threshold])[threshold]
+        out[label] = row
+    return out
 
 
 def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0

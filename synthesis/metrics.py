@@ -371,17 +371,18 @@ def _format_value(value: object) -> str:
 
 
 def format_table(rows: Mapping[str, Mapping[str, float]],
-                 columns: Sequence[str] | None = None) -> str:
-    """A GitHub markdown table: one row per method (key of ``rows``, in order), one column per
-    metric (``columns`` in the given order; default: the union of the rows' keys in first-seen
-    order). Numbers are printed with 3 significant digits without exponent (2.31, 0.0450, 12.3;
-    values >= 100 as integers: 1234), NaN, None and missing entries as "–". Flatten nested
+                 columns: Sequence[str] | None = None, first: str = "method") -> str:
+    """A GitHub markdown table: one row per method (key of ``rows``, in order; ``first`` heads
+    their column), one column per metric (``columns`` in the given order; default: the union
+    of the rows' keys in first-seen order). Numbers are printed with 3 significant digits
+    without exponent (2.31, 0.0450, 12.3; values >= 100 as integers: 1234), NaN, None and
+    missing entries as "–". Flatten nested
     values such as the AP@k dict first: ``{f"AP@{k * 100:g}cm": v for k, v in ap.items()}``."""
     if columns is None:
         cols = list(dict.fromkeys(key for metrics in rows.values() for key in metrics))
     else:
         cols = list(columns)
-    header = ["method", *(str(c).replace("|", "\\|") for c in cols)]
+    header = [first, *(str(c).replace("|", "\\|") for c in cols)]
     lines = [
         "| " + " | ".join(header) + " |",
         "|" + "|".join([" --- "] + [" ---: "] * len(cols)) + "|",

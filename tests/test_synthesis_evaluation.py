@@ -13,6 +13,7 @@ from couch.synthesis import Scene, Synthesizer
 from couch.synthesis.data import find_sequences, load_sequence
 from couch.synthesis.evaluation import (
     EvalChair,
+    contact_breakdown,
     contact_candidates,
     evaluate,
     ground_truth_row,
@@ -45,7 +46,7 @@ def test_trial_setup_draws_starts_around_the_front(ci_run, armchair):
     syn = Synthesizer(ci_run.run_dir, "couch")
     scene = Scene.from_mesh(armchair.vertices, armchair.faces, syn.cfg)
     cands = contact_candidates(armchair.vertices, armchair.faces)
-    starts, sets = trial_setup(scene, cands, 50, np.random.default_rng(0))
+    starts, sets, parts = trial_setup(scene, cands, 50, np.random.default_rng(0))
     r = np.hypot(starts[:, 0] - scene.goal[0, 3], starts[:, 1] - scene.goal[2, 3])
     assert np.all((r >= 2.0) & (r <= 4.0))
     assert np.all(np.arctan2(starts[:, 0], starts[:, 1]) <= 2 * np.pi / 3 + 0.05)
@@ -54,6 +55,10 @@ def test_trial_setup_draws_starts_around_the_front(ci_run, armchair):
     assert np.all(np.abs(off) <= np.pi / 4) and np.ptp(off) > np.pi / 4  # facing it, varied
     asked = np.isfinite(sets[..., 0])
     assert asked.any(1).all() and asked.all(1).any() and (~asked).any()
+    assert np.array_equal(parts != "", asked) and set(parts[asked]) == {"armrest", "seat"}
+    world = np.c_[np.stack([p for ps in cands["left"].values() for p in ps]), np.ones(3)]
+    arm_y = (world @ scene.world_from_chair.T)[0, 1]  # the armrests' centre
+    assert np.all((np.abs(sets[..., 1] - arm_y) < 0.01)[asked] == (parts[asked] == "armrest"))
 
 
 def test_two_hand_sets_are_ones_a_seated_person_can_hold(ci_run, armchair):
@@ -68,7 +73,7 @@ def test_two_hand_sets_are_ones_a_seated_person_can_hold(ci_run, armchair):
     for chair in (armchair, EvalChair("sofa", sofa.vertices, sofa.faces)):
         cands = contact_candidates(chair.vertices, chair.faces)
         scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
-        _, sets = trial_setup(scene, cands, 90, np.random.default_rng(1))
+        _, sets, _ = trial_setup(scene, cands, 90, np.random.default_rng(1))
         seat_y = (scene.world_from_chair @ np.append(cands["left"]["seat"][0], 1.0))[1]
         count = np.isfinite(sets[..., 0]).sum(1)
         both, one = sets[count == 2], sets[count == 1]
@@ -100,8 +105,10 @@ def test_segment_apd_is_zero_for_identical_motions_and_grows_with_difference():
 
 def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
     synths = {m: Synthesizer(ci_run.run_dir, m) for m in ("couch", "baseline")}
-    rows, raw = evaluate(synths, [armchair], trials=3, seconds=1.5, seed=1, contact_samples=4,
-                         progress=False)
+    rows, raw, labels = evaluate(synths, [armchair], trials=3, seconds=1.5, seed=1,
+                                 contact_samples=4, progress=False)
+    assert labels.shape == (3, 2)
+    assert set(labels.ravel()) - {""} <= {"armchair armrest", "armchair seat"}
     assert set(rows) == {"couch", "baseline"}
     for method, row in rows.items():
         assert row["ACE cm"] >= 0 and 0 <= row["AP@5 %"] <= 100
@@ -121,6 +128,19 @@ def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
     assert 0 < gt["skate mm/frame"] < 0.5, gt
 
 
+def test_contact_breakdown_groups_the_asked_contacts():
+    d = {"a": np.array([[0.01, np.nan], [0.10, 0.02], [np.nan, 0.04]]),
+         "b": np.array([[0.03, np.nan], [0.02, 0.08], [np.nan, 0.06]])}
+    labels = np.array([["sofa seat", ""], ["sofa armrest", "sofa seat"], ["", "sofa seat"]])
+    out = contact_breakdown(d, labels)
+    assert list(out) == ["sofa armrest", "sofa seat"]
+    assert out["sofa armrest"] == pytest.approx({"n": 1, "a ACE cm": 10.0, "a AP@5 %": 0.0,
+                                                 "b ACE cm": 2.0, "b AP@5 %": 100.0})
+    seat = out["sofa seat"]
+    assert seat["n"] == 3 and seat["a ACE cm"] == pytest.approx(7 / 3)
+    assert seat["a AP@5 %"] == pytest.approx(100.0) and seat["b AP@5 %"] == pytest.approx(100 / 3)
+
+
 def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     code = main([str(ci_run.run_dir), "-o", str(tmp_path), "--chairs", "1", "--trials", "2",
                  "--seconds", "1", "--contact-samples", "0", "--foot-lock", "-q"])
@@ -138,6 +158,10 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     assert "ACE reduction %" not in doc["intervals"]["baseline"]
     value = doc["intervals"]["couch"]["ACE cm"][0]
     assert value == pytest.approx(doc["rows"]["couch"]["ACE cm"])
+    # where each method misses: per chair kind and part, the hands counted once
+    assert "| contact | n | couch ACE cm |" in table
+    assert doc["breakdown"] and all(k.startswith("armchair ") for k in doc["breakdown"])
+    assert 2 <= sum(r["n"] for r in doc["breakdown"].values()) <= 4  # 2 trials, 1-2 hands
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

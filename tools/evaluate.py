@@ -5,7 +5,9 @@ all`` trains both on the same data; ``--baseline-run`` takes it from another run
 :func:`couch.synthesis.evaluation.evaluate` on held-out chairs: ``--chairs N`` new chairs drawn
 by the simulator (armchair, straight, sofa in turn; never seen in training), or every OBJ/PLY of
 ``--chair-dir`` (in the chair frame). ``--data`` adds a ground-truth row (APDs of those
-sequences). Writes ``OUT/eval.md`` (the table) and ``OUT/eval.json`` (rows and settings).
+sequences). Writes ``OUT/eval.md`` (the table, bootstrap intervals, and ACE / AP@5 per kind of
+asked contact: chair kind and part) and ``OUT/eval.json`` (rows, intervals, that breakdown and
+the settings).
 """
 
 from __future__ import annotations
@@ -30,7 +32,12 @@ from couch.synthesis import (
     format_table,
 )
 from couch.synthesis.data import find_sequences, load_sequence
-from couch.synthesis.evaluation import EvalChair, evaluate, ground_truth_row
+from couch.synthesis.evaluation import (
+    EvalChair,
+    contact_breakdown,
+    evaluate,
+    ground_truth_row,
+)
 from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
 
 __all__ = ["main", "simulated_chairs"]
@@ -101,9 +108,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             chairs = [EvalChair(p.stem, *load_mesh(p)) for p in paths]
         else:
             chairs = simulated_chairs(args.chairs, args.seed)
-        rows, raw = evaluate(synths, chairs, trials=args.trials, seconds=args.seconds,
-                             seed=args.seed, contact_samples=args.contact_samples,
-                             progress=not args.quiet)
+        rows, raw, labels = evaluate(synths, chairs, trials=args.trials, seconds=args.seconds,
+                                     seed=args.seed, contact_samples=args.contact_samples,
+                                     progress=not args.quiet)
+        breakdown = contact_breakdown(raw, labels)
         intervals = contact_intervals(raw, "baseline" if "baseline" in raw else None,
                                       seed=args.seed)
         if args.data:
@@ -112,7 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (FileNotFoundError, ValueError, SchemaError) as e:
         print(f"couch-eval: error: {e}", file=sys.stderr)
         return 2
-    table = format_table(rows) + "\n\n" + format_intervals(intervals, len(chairs) * args.trials)
+    table = (format_table(rows) + "\n\n" + format_intervals(intervals, len(chairs) * args.trials)
+             + "\n\nPer kind of asked contact (chair kind, part; n hands):\n\n"
+             + format_table(breakdown, first="contact"))
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in vars(args).items() if k not in ("output", "quiet")}
@@ -124,7 +134,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         tmp.write_text(header + table + "\n")
     with atomic_path(out / "eval.json") as tmp:
         tmp.write_text(json.dumps({"settings": settings, "rows": rows,
-                                   "intervals": intervals}, indent=2,
+                                   "intervals": intervals, "breakdown": breakdown}, indent=2,
                                   default=float) + "\n")
     print(header + table)
     return 0
