@@ -106,8 +106,9 @@ def contact_candidates(vertices: np.ndarray, faces: np.ndarray
 def _hand_pairs(candidates: Mapping[str, Mapping[str, list[np.ndarray]]]
                 ) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """Two-hand contact sets a seated person can hold, per part: a left and a right candidate
-    of the same part (the data's sitters put both hands on the armrests or both on the seat,
-    never one of each) at most :data:`HAND_SPAN` apart."""
+    of the same part (the simulated sitters put both hands on the armrests or both on the
+    seat: a torso does not lean towards an armrest on one side and the seat on the other) at
+    most :data:`HAND_SPAN` apart."""
     out: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for part in sorted(set(candidates["left"]) & set(candidates["right"])):
         pairs = [(a, b) for a in candidates["left"][part] for b in candidates["right"][part]

