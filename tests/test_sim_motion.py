@@ -83,14 +83,13 @@ def test_interaction_mix_follows_the_couch_dataset():
 
 
 def test_motion_only_dataset(tmp_path):
-    # seed 6: both slots' draws succeed (a two-hand slot can fail every draw and be skipped)
-    summary = simulate_motion_dataset(tmp_path, 2, seed=6, progress=False)
+    summary = simulate_motion_dataset(tmp_path, 2, seed=5, progress=False)
     assert [s["file"] for s in summary["sequences"]] == ["motion_00000.h5", "motion_00001.h5"]
     from couch.schema import read_processed
 
     first = read_processed(tmp_path / "motion_00000.h5")
     assert first.num_frames == summary["sequences"][0]["frames"]
-    simulate_motion_dataset(tmp_path / "again", 1, seed=6, progress=False)
+    simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
     assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
                           first.joints)  # deterministic by seed
 
@@ -121,9 +120,9 @@ def test_joints_move_at_human_speeds(case, sequences):
 
 
 def test_a_sofa_is_sat_on_along_its_length_and_a_chair_in_its_middle(models):
-    """People sit anywhere along a sofa, often at an end with an arm on the armrest: the
-    seated pelvis moves along a sofa's seat (within 0.3 m of its side edges, half the time at
-    an end) and its armrests become reachable; a chair is sat on in its middle."""
+    """People sit anywhere along a sofa, often at an end with an arm on the armrest: a
+    one-hand sitter's pelvis moves along a sofa's seat (within 0.3 m of its side edges, half
+    the time at an end) and its armrests become reachable; a chair is sat on in its middle."""
     from couch.tools.sim.chairs import ChairSpec, make_chair
     from couch.tools.sim.motion import generate_motion
     from couch.tools.sim.scene import chair_seat_geometry

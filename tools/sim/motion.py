@@ -380,13 +380,14 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
 
     # Seated configuration: pelvis over the seat, feet planted in front of it.
     seat_c = np.asarray(seat.seat_center, float).copy()
-    # A seat wider than one sitter (a sofa) is sat on anywhere along it, half the time at an
-    # end, beside an armrest (which is then within reach), as people sit on sofas; a chair's
-    # seat is sat on in the middle (and draws nothing, so its sequences are as before).
+    # One hand to put on a seat wider than one sitter (a sofa): the sitter sits anywhere along
+    # it, half the time at an end, beside an armrest (which is then within reach), as people
+    # sit on sofas. Other interactions and chairs are sat on in the middle and draw nothing
+    # here, so their sequences are what they were.
     seat_x = [abs(p[0]) for k in ("left_seat", "right_seat") for p, _ in seat.hand_targets.get(
         k, [])]
     room = (max(seat_x) if seat_x else 0.0) - cfg.sitter_half_room
-    if room > 0.1:
+    if room > 0.1 and interaction in ("left_hand", "right_hand"):
         seat_c[0] += rng.choice([-1.0, 1.0]) * room * (1.0 if rng.random() < 0.5 else rng.random())
     if seat.back_front_z is not None:
         pelvis_z = seat.back_front_z + body.buttock_back + rng.uniform(0.02, 0.06)
