@@ -114,8 +114,10 @@ def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
         assert row["ACE cm"] >= 0 and 0 <= row["AP@5 %"] <= 100
         assert raw[method].shape == (3, 2)
         assert np.isfinite(row["skate mm/frame"]) and row["pen. depth cm"] >= 0
-        # one chair: pooling over the chairs is that chair's contact APD
-        assert row["contact APD pooled cm"] == pytest.approx(row["contact APD cm"])
+        # one chair: pooling over the chairs is that chair's contact APD (NaN for both when
+        # the ci-sized ContactNet's samples leave fewer than two complete two-hand sets)
+        assert row["contact APD pooled cm"] == pytest.approx(row["contact APD cm"],
+                                                             nan_ok=True)
     sequences = [load_sequence(r) for r in find_sequences([motion_sim])]
     gt = ground_truth_row(sequences)
     assert gt["APD approach"] > 0 and gt["APD sit"] > 0
