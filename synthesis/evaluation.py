@@ -289,13 +289,13 @@ def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
     (N, 2) what each contact was (:func:`evaluate`'s third output). Returns ``{label: {"n":
     count, "<method> ACE cm": ..., "<method> AP@5 %": ...}}``, labels sorted."""
     labels = np.asarray(labels).astype(str)
+    k = round(threshold * 100)
     out: dict[str, dict[str, float]] = {}
     for label in sorted(set(labels.ravel()) - {""}):
         sel = labels == label
         row: dict[str, float] = {"n": float(sel.sum())}
         for method, d in distances.items():
             d = np.asarray(d, np.float64)[sel]
-            k = round(threshold * 100)
             row[f"{method} ACE cm"] = 100 * ace(d)
             row[f"{method} AP@{k} %"] = 100 * contact_precision(d, [threshold])[threshold]
         out[label] = row

@@ -376,8 +376,8 @@ def format_table(rows: Mapping[str, Mapping[str, float]],
     their column), one column per metric (``columns`` in the given order; default: the union
     of the rows' keys in first-seen order). Numbers are printed with 3 significant digits
     without exponent (2.31, 0.0450, 12.3; values >= 100 as integers: 1234), NaN, None and
-    missing entries as "–". Flatten nested
-    values such as the AP@k dict first: ``{f"AP@{k * 100:g}cm": v for k, v in ap.items()}``."""
+    missing entries as "–". Flatten nested values such as the AP@k dict first:
+    ``{f"AP@{k * 100:g}cm": v for k, v in ap.items()}``."""
     if columns is None:
         cols = list(dict.fromkeys(key for metrics in rows.values() for key in metrics))
     else:
