@@ -3,6 +3,8 @@ fp32 networks they copy, and ``Synthesizer(precision=...)`` on the session's ci-
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -112,19 +114,30 @@ def test_small_layers_stay_fp32():
 def test_synthesizer_in_fp16_follows_fp32(ci_run):
     chair = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
     starts = np.array([[0.2, 0.9, np.pi], [1.0, 1.5, -2.0]])
-    series = np.array([[np.asarray(chair.landmarks.left_armrest), [np.nan] * 3]])
-    runs = {}
-    for precision in ("fp32", "fp16"):
-        syn = Synthesizer(ci_run.run_dir, "couch", precision=precision)
-        # the ci nets' layers are all small: only the experts and LSTM cells are packed
+    series = np.broadcast_to(np.array([[np.asarray(chair.landmarks.left_armrest),
+                                        [np.nan] * 3]]), (2, 1, 2, 3))
+    syns = {p: Synthesizer(ci_run.run_dir, "couch", precision=p) for p in ("fp32", "fp16")}
+    # the ci nets' layers are all small: only the experts and LSTM cells are packed
+    for precision, syn in syns.items():
         packed = (syn.pose_net.packed_experts is not None,
                   syn.control_net.packed_cells is not None)
         assert packed == ((True, True) if precision == "fp16" else (False, False))
-        scene = Scene.from_mesh(chair.vertices, chair.faces, syn.cfg)
-        runs[precision] = syn.synthesize(scene, starts, series, seconds=1.5)
-    assert runs["fp32"].control_on.any()
-    # closed loop over 45 frames: the fp16 weights move no joint by more than a millimetre
-    assert np.abs(runs["fp16"].joints - runs["fp32"].joints).max() < 1e-3
+    scene = Scene.from_mesh(chair.vertices, chair.faces, syns["fp32"].cfg)
+    # Each frame of 45, both runtimes step from the same state (fp32's): the tiny ci nets'
+    # closed loop can grow a 0.1 mm difference into centimetres within ten frames, which says
+    # nothing about the weights' precision.
+    state = syns["fp32"]._initial_state(scene.goals(series), starts, len(starts))
+    control_on, worst = False, 0.0
+    for _ in range(45):
+        twin = copy.deepcopy(state)
+        want = syns["fp32"]._step(scene, state, series)
+        got = syns["fp16"]._step(scene, twin, series)
+        control_on |= bool(want["on"].any())
+        worst = max(worst, float(np.abs(got["jpos"] - want["jpos"]).max()),
+                    float(np.abs(got["root"][:, :3, 3] - want["root"][:, :3, 3]).max()))
+    assert control_on
+    # one step's pose and root from fp16 weights are within 0.2 mm of fp32's (0.07 measured)
+    assert worst < 2e-4
 
 
 def test_synthesizer_precision_errors(ci_run):
