@@ -241,11 +241,12 @@ class ControlNetConfig:
             gives no values. The released code uses (0.1, 0.02, 2.0) with an MSE regulariser
             (plus an extra first-point term not reproduced here). Ours: (1, 1, 0.1). The
             straight line ends on the chair's surface, where no hand joint goes (a touching
-            hand joint stays ~7.5 cm off it); with lambda3 = 1 the norm regulariser, whose
-            gradient does not fade near the line, pulled the predicted trajectory's end onto
-            the surface, so PoseNet was told the hand goes where its data never put one and
-            seated palms hovered ~5 cm over seat corners (``couch-eval`` 24 x 16 trials, same
-            PoseNet: ACE 4.13 cm with lambda3 = 1, 2.75 with 0.1, 3.58 with 0.01, 4.14 with 0).
+            hand joint stays ~9 cm from its contact point in the simulated data, 6-8 cm above
+            it); with lambda3 = 1 the norm regulariser, whose gradient does not fade near the
+            line, pulled the predicted trajectory's end onto the surface, so PoseNet was told
+            the hand goes where its data never put one, and seated palms stopped ~5 cm from
+            seat corners (``couch-eval`` 24 x 16 trials, same PoseNet: ACE 4.13 cm with
+            lambda3 = 1, 2.75 with 0.1, 3.58 with 0.01, 4.14 with 0).
         reg: ``"norm"`` (paper: ||h - h_line||_2) or ``"mse"`` (released code).
     """
 
