@@ -247,7 +247,8 @@ class ControlNetConfig:
             the hand goes where its data never put one, and seated palms stopped ~5 cm from
             seat corners (``couch-eval`` 24 x 16 trials, same PoseNet: ACE 4.13 cm with
             lambda3 = 1, 3.24 with 0.3, 2.75 with 0.1, 3.73 with 0.03, 3.58 with 0.01,
-            4.14 with 0; 3.20 against 4.02 for 0.1 and 1 on 24 other chairs).
+            4.14 with 0; 3.20 against 4.02 for 0.1 and 1 on 24 other chairs; a second
+            training at 0.1 with another seed: 3.75).
         reg: ``"norm"`` (paper: ||h - h_line||_2) or ``"mse"`` (released code).
     """
 
