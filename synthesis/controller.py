@@ -306,10 +306,13 @@ class Synthesizer:
         self.pose_net = packed_copy(self.pose_net, precision)
         offsets = self.cfg.trajectory_offsets
         self._past_offsets = offsets[offsets < 0]  # the trajectory's past samples (frames)
-        self.control_net = None
+        self.control_net, self.control_line_end = None, 0.0
         if method == "couch":
-            self.control_net, self.control_stats, _ = load_trained(run_dir, "control", which,
-                                                                  device)
+            self.control_net, self.control_stats, control_meta = load_trained(
+                run_dir, "control", which, device)
+            # ControlNet's own features: a run may pair it with another run's PoseNet
+            self.control_line_end = feature_config_from_json(
+                json.dumps(control_meta["feature_config"])).control_line_end
             self.control_net = packed_copy(self.control_net, precision)
         self.hold, self.reach, self.timeout = hold, reach, timeout
         self.blend_radius, self.walk_radius = blend_radius, walk_radius
@@ -465,7 +468,7 @@ class Synthesizer:
         assert net is not None
         fresh = mask & ~s.on
         straight = control_line(hands, np.where(mask[..., None], targets, 0.0), mask, s.root,
-                                cfg.control_samples)
+                                cfg.control_samples, self.control_line_end)
         line = np.where(fresh[..., None, None], straight, s.line) * mask[..., None, None]
         past = s.hist_hphase[:, s.hist_hphase.shape[1] + self._past_offsets]
         hphase = np.concatenate([past.transpose(0, 2, 1), s.c_phase], -1)  # (B,2,13)

@@ -71,6 +71,10 @@ class FeatureConfig:
     # is this close to the target horizontally: the runtime approaches with PoseNet alone and
     # switches ControlNet on near the chair (paper Sec. 4.5), so training sees the same.
     control_radius: float = 1.5
+    # m above the contact (world up) where ControlNet's straight line h̃ ends: a hand joint
+    # touching a seat or armrest stays ~6-8 cm above the contact point (the palm is on it), so
+    # a line ending on the surface asks for a hand joint where no data puts one.
+    control_line_end: float = 0.0
     sit_transition: float = 1.5  # s: longest sit-down transition (global phase 0 -> 1)
     step_min_interval: float = 0.4  # s: closest two left-foot strikes may be
     walk_cycle: float = 1.0  # s: nominal cycle when fewer than two strikes are found
@@ -653,18 +657,21 @@ def control_near(root: np.ndarray, targets: np.ndarray, radius: float) -> np.nda
 
 
 def control_line(hand: np.ndarray, target: np.ndarray, mask: np.ndarray, root: np.ndarray,
-                 samples: int = 7) -> np.ndarray:
+                 samples: int = 7, end_height: float = 0.0) -> np.ndarray:
     """ControlNet input h̃: (..., 2, samples, 3) points spaced uniformly on the straight line
-    from each hand (sample 0) to its target (last sample), relative to the target, rotated into
-    the root frame; zeros where ``mask`` is False.
+    from each hand (sample 0) to ``end_height`` m above its target (last sample), relative to
+    the target, rotated into the root frame; zeros where ``mask`` is False.
 
     Args:
         hand: (..., 2, 3) world hand positions; target: (..., 2, 3) world contacts;
-        mask: (..., 2) bool; root: (..., 4, 4).
+        mask: (..., 2) bool; root: (..., 4, 4); end_height: metres along world up
+            (:attr:`FeatureConfig.control_line_end`).
     """
     w = 1.0 - np.linspace(0.0, 1.0, samples)
-    offset = vectors_to_root(np.where(mask[..., None], hand - target, 0.0), root)
-    return offset[..., :, None, :] * w[:, None]
+    end = np.where(mask[..., None], end_height * UP, 0.0)
+    offset = vectors_to_root(np.where(mask[..., None], hand - target, 0.0) - end, root)
+    end_root = vectors_to_root(end, root)
+    return offset[..., :, None, :] * w[:, None] + end_root[..., :, None, :]
 
 
 def control_signal(hand_positions: np.ndarray, phases: np.ndarray, target: np.ndarray,
@@ -961,7 +968,8 @@ def sequence_features(session: ProcessedSession, config: FeatureConfig | None = 
     mask &= control_near(root, targets, cfg.control_radius)
     hand_phases = phases[sample_indices(n, cfg.trajectory_offsets)].transpose(0, 2, 1)
     safe_targets = np.where(mask[..., None], targets, 0.0)
-    line = control_line(hands, safe_targets, mask, root, cfg.control_samples)
+    line = control_line(hands, safe_targets, mask, root, cfg.control_samples,
+                        cfg.control_line_end)
     ctrl_pos, ctrl_phase = control_signal(hands, phases, safe_targets, mask, root,
                                           cfg.control_offsets)
 

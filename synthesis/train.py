@@ -55,7 +55,13 @@ from couch.synthesis.data import (
     fit_stats,
     split,
 )
-from couch.synthesis.features import SIT, FeatureStats, layout, tidy_future_trajectory
+from couch.synthesis.features import (
+    SIT,
+    FeatureConfig,
+    FeatureStats,
+    layout,
+    tidy_future_trajectory,
+)
 from couch.synthesis.nets import (
     ContactNet,
     ContactNetConfig,
@@ -727,6 +733,13 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
             diff = sorted(k for k in {*saved, *now} if saved.get(k) != now.get(k))
             raise ValueError(f"{ck_path}: was trained with different settings ({', '.join(diff)});"
                              " use --no-resume or another run folder")
+        saved_features = feature_config_from_json(json.dumps(
+            json.loads(checkpoint["meta"])["feature_config"]))
+        if saved_features != cache.config:
+            a, b = dataclasses.asdict(saved_features), dataclasses.asdict(cache.config)
+            diff = sorted(k for k in a if a[k] != b[k])
+            raise ValueError(f"{ck_path}: was trained on other features ({', '.join(diff)}); "
+                             "use --no-resume or another run folder")
     stats = FeatureStats.load(stats_path) if checkpoint is not None and stats_path.is_file() \
         else None
 
@@ -829,7 +842,8 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
           net: str = "all", preset: str = "paper", epochs: int | None = None,
           device: str = "cpu", seed: int = 0, resume: bool = True, progress: bool = True,
           threads: int | None = 1, stop_after: int | None = None,
-          configs: Mapping[str, TrainConfig] | None = None) -> TrainResult:
+          configs: Mapping[str, TrainConfig] | None = None,
+          features: FeatureConfig | None = None) -> TrainResult:
     """Train ``net`` (control | pose | contact | baseline | all) on the sequences under
     ``data_paths``, writing everything into ``run_dir`` (see the module docstring).
 
@@ -847,6 +861,8 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
             cores); None leaves torch's setting alone.
         stop_after: finish at most this epoch in this call (time-sliced jobs; resume later).
         configs: per-net :class:`TrainConfig` overriding the preset.
+        features: the features' settings (default :class:`FeatureConfig`); the run's cache is
+            rebuilt when they differ from the ones it was built with.
     Raises:
         FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
     """
@@ -863,7 +879,7 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
     if threads is not None:
         torch.set_num_threads(max(1, int(threads)))
     try:
-        cache = build_cache(refs, run / "features.h5", progress=progress)
+        cache = build_cache(refs, run / "features.h5", features, progress=progress)
         if progress:
             state = "reused" if cache.hit else "built"
             print(f"{run / 'features.h5'}: {state}, {cache.num_sequences} sequences, "
@@ -934,6 +950,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rollout", type=int, default=None,
                    help="PoseNet and baseline: frames per closed-loop window (override the "
                         "preset's)")
+    p.add_argument("--control-line-end", type=float, default=None, metavar="M",
+                   help="metres above each contact where ControlNet's straight line ends "
+                        f"(default {FeatureConfig().control_line_end:g}; changes the features, "
+                        "so the run's cache is rebuilt)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1,
@@ -971,7 +991,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = train(args.data, args.output, net=args.net, preset=args.preset,
                        epochs=args.epochs, device=args.device, seed=args.seed,
                        resume=not args.no_resume, progress=not args.quiet, threads=args.threads,
-                       configs=configs)
+                       configs=configs,
+                       features=(None if args.control_line_end is None else
+                                 FeatureConfig(control_line_end=args.control_line_end)))
     except (FileNotFoundError, ValueError, SchemaError) as e:
         print(f"couch-train: error: {e}", file=sys.stderr)
         return 2

@@ -354,3 +354,23 @@ def test_runtime_folds_the_interaction_encoders_first_layer(synth, scene, ci_run
             stats.normalize("interaction", i).astype(np.float32))).numpy()
     np.testing.assert_allclose(synth._interaction_first(scene, roots).numpy(), want,
                                rtol=1e-4, atol=1e-4)
+
+
+def test_controlnet_line_end_comes_from_its_own_features(ci_run, tmp_path):
+    """A run may pair a ControlNet trained with its line ending above the contact with
+    another run's PoseNet: the controller builds h̃ with ControlNet's setting."""
+    import json
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(ci_run.run_dir / "control", run / "control")
+    (run / "pose").symlink_to(ci_run.run_dir / "pose")
+    ck = torch.load(run / "control" / "best.pt", weights_only=True)
+    meta = json.loads(ck["meta"])
+    meta["feature_config"]["control_line_end"] = 0.05
+    ck["meta"] = json.dumps(meta)
+    torch.save(ck, run / "control" / "best.pt")
+    paired = Synthesizer(run, "couch")
+    assert paired.cfg.control_line_end == 0.0  # PoseNet's features
+    assert paired.control_line_end == 0.05
+    assert Synthesizer(ci_run.run_dir, "couch").control_line_end == 0.0

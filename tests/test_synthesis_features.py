@@ -22,6 +22,7 @@ from couch.synthesis.features import (
     OccupancyGrid,
     chair_voxels,
     contact_runs,
+    control_line,
     ego_cell_centres,
     ego_features,
     global_rotations,
@@ -398,3 +399,21 @@ def test_interaction_layer_is_the_layer_over_normalised_i():
     got = root_affine(roots) @ interaction_layer(occupancy, centres, weight, bias, mean, std).T
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
     assert root_affine(roots[0]).shape == (13,)
+
+
+def test_control_line_can_end_above_the_contact():
+    """h̃ runs from the hand to ``end_height`` above the contact: the world points on that
+    segment, relative to the contact and seen from a yawed root, and zero for masked hands."""
+    root = make_transform(axis_angle_to_matrix(np.array([0.0, 0.8, 0.0])), [0.4, 0.0, -0.2])
+    hand = np.array([[0.1, 0.9, 0.5], [0.6, 1.0, 0.3]])
+    target = np.array([[0.3, 0.45, 0.7], [0.0, 0.0, 0.0]])
+    mask = np.array([True, False])
+    line = control_line(hand, target, mask, root, samples=5, end_height=0.07)
+    end = target[0] + [0.0, 0.07, 0.0]
+    for k, s in enumerate(np.linspace(0.0, 1.0, 5)):
+        world = hand[0] + s * (end - hand[0])
+        np.testing.assert_allclose(line[0, k], root[:3, :3].T @ (world - target[0]), atol=1e-12)
+    assert np.all(line[1] == 0)
+    # height 0 is the line onto the contact itself
+    np.testing.assert_allclose(control_line(hand, target, mask, root, samples=5)[0, -1], 0.0,
+                               atol=1e-12)

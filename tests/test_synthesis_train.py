@@ -111,6 +111,13 @@ def test_resume_continues_and_reproduces(sim, trained, tmp_path):
     torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
     with pytest.raises(ValueError, match=r"settings \(rollout\)"):
         train([sim], tmp_path, net="pose", preset="ci", progress=False)
+    # ... nor one trained on other features (ControlNet's line ending elsewhere)
+    meta["train_config"]["rollout"] = json.loads(preset_config("pose", "ci").to_json())["rollout"]
+    meta["feature_config"]["control_line_end"] = 0.05
+    ck["meta"] = json.dumps(meta)
+    torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"other features \(control_line_end\)"):
+        train([sim], tmp_path, net="pose", preset="ci", progress=False)
 
 
 def test_load_trained_matches_the_trained_model(trained):
