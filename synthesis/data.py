@@ -197,7 +197,7 @@ def _config_json(config: FeatureConfig) -> str:
 def feature_config_from_json(text: str) -> FeatureConfig:
     """Inverse of the cache's ``feature_config`` attribute (lists back to tuples)."""
     values = json.loads(text)
-    # runs and caches written before the line's end could be moved end on the contact
+    # runs and caches from before the setting existed: their lines end on the contact
     values.setdefault("control_line_end", 0.0)
     return FeatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 

@@ -71,9 +71,10 @@ class FeatureConfig:
     # is this close to the target horizontally: the runtime approaches with PoseNet alone and
     # switches ControlNet on near the chair (paper Sec. 4.5), so training sees the same.
     control_radius: float = 1.5
-    # m above the contact (world up) where ControlNet's straight line h̃ ends: a hand joint
-    # touching a seat or armrest stays ~6-8 cm above the contact point (the palm is on it), so
-    # a line ending on the surface asks for a hand joint where no data puts one.
+    # m above the contact (world up; negative: below) where ControlNet's straight line h̃
+    # ends. A touching hand joint stays ~6-8 cm above the contact (the palm is on it), yet on
+    # the contact brings the palm closest: 7 cm above and 3 cm below were both worse (README,
+    # Results so far), as PoseNet follows ControlNet's trajectory only part of the way.
     control_line_end: float = 0.0
     sit_transition: float = 1.5  # s: longest sit-down transition (global phase 0 -> 1)
     step_min_interval: float = 0.4  # s: closest two left-foot strikes may be
