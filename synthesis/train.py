@@ -726,15 +726,15 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
             checkpoint = torch.load(ck_path, map_location="cpu", weights_only=True)
         except Exception as e:  # any unreadable checkpoint gets the same message
             raise ValueError(f"{ck_path}: cannot read checkpoint ({e}); use --no-resume") from e
-        saved = json.loads(checkpoint["meta"])["train_config"]
+        saved_meta = json.loads(checkpoint["meta"])
+        saved = saved_meta["train_config"]
         now = json.loads(cfg.to_json())
         if saved != now:
             # both sides' keys: a run saved before a setting existed lacks it
             diff = sorted(k for k in {*saved, *now} if saved.get(k) != now.get(k))
             raise ValueError(f"{ck_path}: was trained with different settings ({', '.join(diff)});"
                              " use --no-resume or another run folder")
-        saved_features = feature_config_from_json(json.dumps(
-            json.loads(checkpoint["meta"])["feature_config"]))
+        saved_features = feature_config_from_json(json.dumps(saved_meta["feature_config"]))
         if saved_features != cache.config:
             a, b = dataclasses.asdict(saved_features), dataclasses.asdict(cache.config)
             diff = sorted(k for k in a if a[k] != b[k])
