@@ -41,7 +41,7 @@ from torch import Tensor, nn
 from tqdm import tqdm
 
 from couch.atomic import atomic_path
-from couch.body.skeleton import CONTACT_NAMES
+from couch.body.skeleton import CONTACT_NAMES, JOINT_INDEX
 from couch.schema import SchemaError
 from couch.synthesis.data import (
     FeatureCache,
@@ -158,6 +158,10 @@ class TrainConfig:
             drifted J it has to bring the hands back to where C+, the trajectory and the chair
             say they should be. Validation then runs closed loop in every epoch, and
             ``best.pt`` is the closed-loop epoch with the lowest validation loss.
+        hand_weight: PoseNet and baseline: weight of the wrists' next positions and rotations
+            (which place the hands) in the loss, every other output weighing 1 (1: a plain
+            MSE, the paper's recipe). Validation uses the same weights, so ``best.pt`` is
+            picked by the loss that was trained.
         window: ControlNet frames per training window (paper 60).
         stride: ControlNet rows between window starts (0: window // 2).
         val_fraction: share of chairs (or sequences) held out for validation.
@@ -177,6 +181,7 @@ class TrainConfig:
     input_noise: float = 0.0
     rollout: int = 0
     rollout_epochs: int = 0
+    hand_weight: float = 1.0
     window: int = 60
     stride: int = 0
     val_fraction: float = 0.1
@@ -404,6 +409,9 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
                              "PoseNet's closed-loop windows (rollout)")
         val_ds = WindowDataset(cache, cfg.rollout, cfg.rollout, val, groups=groups, stats=stats)
     feedback = pose_feedback(groups_out, widths, stats)
+    if cfg.hand_weight <= 0:
+        raise ValueError(f"hand_weight must be positive, got {cfg.hand_weight}")
+    weights = output_weights(groups_out, widths, cfg.hand_weight)
 
     def noisy(x: dict[str, Tensor], gen: torch.Generator | None) -> dict[str, Tensor]:
         x = dict(x)
@@ -435,8 +443,9 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
                 x = noisy(x, gen)
             pred, _ = model(pose_inputs(x, cfg.net))
             err = pred - torch.cat([y[g] for g in groups_out], -1)
-        terms = {"loss": torch.mean(err ** 2)}
-        # Per-group MSE components (which targets are hard) from the same prediction.
+        terms = {"loss": torch.mean(err ** 2 * weights.to(err.device))}
+        # Per-group MSE components (which targets are hard, unweighted) from the same
+        # prediction.
         for g, part in zip(groups_out, torch.split(err.detach() ** 2, widths, -1), strict=True):
             terms[g] = part.mean()
         return terms
@@ -444,6 +453,25 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     meta = {"model_args": {"inputs": inputs, "gating_inputs": gating, "out_dim": out_dim},
             "groups_in": groups_in, "groups_out": groups_out}
     return _Task(model, train_ds, val_ds, stats, loss, meta, rollout_ds)
+
+
+#: Joints whose next positions and rotations ``TrainConfig.hand_weight`` weighs: the hand
+#: joints are not among J's 22, the wrists' position and rotation place them.
+WEIGHTED_JOINTS = (JOINT_INDEX["left_wrist"], JOINT_INDEX["right_wrist"])
+
+
+def output_weights(groups_out: Sequence[str], widths: Sequence[int], hand_weight: float
+                   ) -> Tensor:
+    """(out_dim,) per-column loss weights of PoseNet's concatenated targets: ``hand_weight``
+    on the :data:`WEIGHTED_JOINTS`' columns of ``next_joint_positions`` (3 each) and
+    ``next_joint_rotations`` (6D, 6 each), 1 elsewhere."""
+    w = torch.ones(int(sum(widths)))
+    start = dict(zip(groups_out, np.cumsum([0, *widths[:-1]]).tolist(), strict=True))
+    for group, size in (("next_joint_positions", 3), ("next_joint_rotations", 6)):
+        if group in start:
+            for j in WEIGHTED_JOINTS:
+                w[start[group] + size * j:start[group] + size * (j + 1)] = hand_weight
+    return w
 
 
 def pose_feedback(groups_out: Sequence[str], widths: Sequence[int], stats: FeatureStats
@@ -727,7 +755,9 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         except Exception as e:  # any unreadable checkpoint gets the same message
             raise ValueError(f"{ck_path}: cannot read checkpoint ({e}); use --no-resume") from e
         saved_meta = json.loads(checkpoint["meta"])
-        saved = saved_meta["train_config"]
+        # A setting added after the run was saved counts as its default.
+        saved = {**{f.name: f.default for f in dataclasses.fields(TrainConfig)
+                    if f.default is not dataclasses.MISSING}, **saved_meta["train_config"]}
         now = json.loads(cfg.to_json())
         if saved != now:
             # both sides' keys: a run saved before a setting existed lacks it
@@ -950,6 +980,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rollout", type=int, default=None,
                    help="PoseNet and baseline: frames per closed-loop window (override the "
                         "preset's)")
+    p.add_argument("--hand-weight", type=float, default=None, metavar="W",
+                   help="PoseNet and baseline: loss weight of the wrists' next positions and "
+                        "rotations, every other output 1 (default 1: a plain MSE)")
     p.add_argument("--control-line-end", type=float, default=None, metavar="M",
                    help="metres above each contact where ControlNet's straight line ends "
                         f"(default {FeatureConfig().control_line_end:g}; changes the features, "
@@ -983,8 +1016,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"couch-train: error: {flag} must not be negative, got {value}",
                   file=sys.stderr)
             return 2
+    if args.hand_weight is not None and not args.hand_weight > 0:
+        print(f"couch-train: error: --hand-weight must be positive, got {args.hand_weight}",
+              file=sys.stderr)
+        return 2
     overrides = {k: v for k, v in (("rollout_epochs", args.rollout_epochs),
-                                   ("rollout", args.rollout)) if v is not None}
+                                   ("rollout", args.rollout),
+                                   ("hand_weight", args.hand_weight)) if v is not None}
     configs = ({n: dataclasses.replace(preset_config(n, args.preset, args.epochs), **overrides)
                 for n in ("pose", "baseline")} if overrides else None)
     try:

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from couch.body.skeleton import CONTACT_NAMES
+from couch.body.skeleton import CONTACT_NAMES, JOINT_INDEX
 from couch.schema import SCHEMA_VERSION, read_processed, write_processed, write_session_group
 from couch.synthesis.data import (
     FeatureCache,
@@ -34,9 +34,12 @@ from couch.synthesis.data import (
 )
 from couch.synthesis.features import LAYOUT, SIT, FeatureStats
 from couch.synthesis.train import (
+    _TASKS,
     NETS,
+    WEIGHTED_JOINTS,
     load_trained,
     main,
+    output_weights,
     pose_feedback,
     pose_inputs,
     preset_config,
@@ -103,16 +106,25 @@ def test_resume_continues_and_reproduces(sim, trained, tmp_path):
     # Different settings must not silently continue an old run.
     with pytest.raises(ValueError, match=r"checkpoint\.pt: .*settings \(epochs\)"):
         train([sim], tmp_path, net="pose", preset="ci", epochs=9, progress=False)
-    # ... nor a run saved before a setting existed (the setting is named)
+    # A run saved before a setting existed trained as its default does: at the default now
+    # it resumes ...
     ck = torch.load(tmp_path / "pose" / "checkpoint.pt", weights_only=True)
     meta = json.loads(ck["meta"])
-    del meta["train_config"]["rollout"]
+    saved_config = dict(meta["train_config"])
+    assert saved_config["hand_weight"] == 1.0
+    del meta["train_config"]["hand_weight"]
     ck["meta"] = json.dumps(meta)
     torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
-    with pytest.raises(ValueError, match=r"settings \(rollout\)"):
+    assert train([sim], tmp_path, net="pose", preset="ci",
+                 progress=False).nets["pose"].resumed_from == r.epochs
+    # ... elsewhere it is refused, naming the setting (the ci preset's lr is not the default)
+    del meta["train_config"]["lr"]
+    ck["meta"] = json.dumps(meta)
+    torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"settings \(lr\)"):
         train([sim], tmp_path, net="pose", preset="ci", progress=False)
     # ... nor one trained on other features (ControlNet's line ending elsewhere)
-    meta["train_config"]["rollout"] = json.loads(preset_config("pose", "ci").to_json())["rollout"]
+    meta["train_config"] = saved_config
     meta["feature_config"]["control_line_end"] = 0.05
     ck["meta"] = json.dumps(meta)
     torch.save(ck, tmp_path / "pose" / "checkpoint.pt")
@@ -219,6 +231,43 @@ def test_closed_loop_epochs_train_and_validate_closed_loop(sim, trained, tmp_pat
     with pytest.raises(ValueError, match="rollout"):
         train([sim], tmp_path / "bad", net="pose", progress=False,
               configs={"pose": dataclasses.replace(cfg, rollout=1)})
+
+
+def test_hand_weight_weighs_the_wrists_in_the_loss(trained):
+    """``hand_weight``: the wrists' next positions (3 columns each) and rotations (6 each)
+    weigh that much in PoseNet's loss, every other column 1; the task's loss is that weighted
+    mean of the squared errors."""
+    assert WEIGHTED_JOINTS == (JOINT_INDEX["left_wrist"], JOINT_INDEX["right_wrist"]) == (20, 21)
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, val_seqs = split(cache)
+    model, stats, meta = load_trained(trained.run_dir, "pose", which="last")
+    gout = meta["groups_out"]
+    widths = [cache.dims[g] for g in gout]
+    w = output_weights(gout, widths, 4.0)
+    assert w.shape == (sum(widths),)
+    start = dict(zip(gout, np.cumsum([0, *widths[:-1]]).tolist(), strict=True))
+    expected = sorted([start["next_joint_positions"] + 3 * j + k for j in (20, 21)
+                       for k in range(3)]
+                      + [start["next_joint_rotations"] + 6 * j + k for j in (20, 21)
+                         for k in range(6)])
+    heavy = torch.nonzero(w != 1.0).flatten().tolist()
+    assert heavy == expected and bool(torch.all(w[heavy] == 4.0))
+    assert torch.equal(output_weights(gout, widths, 1.0), torch.ones(sum(widths)))
+
+    cfg = dataclasses.replace(preset_config("pose", "ci"), hand_weight=4.0)
+    task = _TASKS["pose"](cache, train_seqs, val_seqs, cfg, stats)
+    x, y = next(iter(torch.utils.data.DataLoader(task.val_ds, batch_size=16,
+                                                 collate_fn=collate_batch)))
+    model.eval()
+    with torch.no_grad():
+        pred, _ = model(pose_inputs(x, "pose"))
+        sq = (pred - torch.cat([y[g] for g in gout], -1)) ** 2
+        got = task.loss(model, (x, y), 1, False, None)["loss"]
+    torch.testing.assert_close(got, (sq * w).mean())
+    assert float(got) > float(sq.mean())  # the wrists' errors counted four times
+    with pytest.raises(ValueError, match="hand_weight"):
+        _TASKS["pose"](cache, train_seqs, val_seqs,
+                       dataclasses.replace(cfg, hand_weight=0.0), stats)
 
 
 def test_a_run_on_older_features_is_a_clear_error(trained, tmp_path):
@@ -358,6 +407,8 @@ def test_main_reports_bad_inputs(tmp_path, capsys):
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--epochs", "0"]) == 2
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--rollout-epochs", "-1"]) == 2
     assert "--rollout-epochs must not be negative" in capsys.readouterr().err
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "--hand-weight", "0"]) == 2
+    assert "--hand-weight must be positive" in capsys.readouterr().err
 
 
 def test_main_trains_and_resumes_finished_run(sim, trained, capsys):
