@@ -20,7 +20,7 @@ from couch.synthesis.evaluation import (
     segment_apd,
     trial_setup,
 )
-from couch.tools.evaluate import main, simulated_chairs
+from couch.tools.evaluate import load_trials, main, simulated_chairs
 from couch.tools.sim.chairs import make_chair, random_chair_spec
 
 
@@ -164,6 +164,17 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     assert "| contact | n | couch ACE cm |" in table
     assert doc["breakdown"] and all(k.startswith("armchair ") for k in doc["breakdown"])
     assert 2 <= sum(r["n"] for r in doc["breakdown"].values()) <= 4  # 2 trials, 1-2 hands
+    # every trial's distances, for paired comparisons across runs: the table's ACE is theirs
+    dist, labels, chair = load_trials(tmp_path)
+    assert set(dist) == set(doc["rows"]) and labels.shape == (2, 2) and chair.shape == (2,)
+    for method, d in dist.items():
+        assert d.shape == (2, 2)
+        assert 100 * np.nanmean(d) == pytest.approx(doc["rows"][method]["ACE cm"])
+        assert np.array_equal(np.isnan(d), labels == "")  # a distance where a hand was asked
+    assert set(chair) == {"armchair_00"}
+    np.savez(tmp_path / "other.npz", x=np.zeros(2))
+    with pytest.raises(ValueError, match=r"other\.npz: not a couch-eval trials\.npz"):
+        load_trials(tmp_path / "other.npz")
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

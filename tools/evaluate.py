@@ -6,8 +6,9 @@ all`` trains both on the same data; ``--baseline-run`` takes it from another run
 by the simulator (armchair, straight, sofa in turn; never seen in training), or every OBJ/PLY of
 ``--chair-dir`` (in the chair frame). ``--data`` adds a ground-truth row (APDs of those
 sequences). Writes ``OUT/eval.md`` (the table, bootstrap intervals, and ACE / AP@5 per kind of
-asked contact: chair kind and part) and ``OUT/eval.json`` (rows, intervals, that breakdown and
-the settings).
+asked contact: chair kind and part), ``OUT/eval.json`` (rows, intervals, that breakdown and
+the settings) and ``OUT/trials.npz`` (every trial's closest hand distances per method, for
+paired comparisons across runs: see :func:`load_trials`).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from couch.synthesis.evaluation import (
 )
 from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
 
-__all__ = ["main", "simulated_chairs"]
+__all__ = ["load_trials", "main", "simulated_chairs"]
 
 _KINDS = ("armchair", "straight", "sofa")
 #: A method name ending in this runs that method with ``Synthesizer(hand_ik=True)``.
@@ -56,6 +57,33 @@ def simulated_chairs(count: int, seed: int) -> list[EvalChair]:
         c = make_chair(random_chair_spec(rng, kind))
         out.append(EvalChair(f"{kind}_{i:02d}", c.vertices, c.faces))
     return out
+
+
+def save_trials(path: Path, raw: dict[str, np.ndarray], labels: np.ndarray,
+                chairs: Sequence[str], trials: int) -> None:
+    """Write ``trials.npz``: ``distance/<method>`` (N, 2) closest hand-surface distance to
+    each asked contact (m; NaN: none asked), ``labels`` (N, 2) what was asked (``"<chair
+    kind> <part>"``), ``chair`` (N,) the chair's name; N = chairs x trials, chair-major."""
+    arrays = {f"distance/{m}": np.asarray(d, np.float64) for m, d in raw.items()}
+    with atomic_path(path) as tmp:
+        np.savez(tmp, labels=np.asarray(labels).astype(str),
+                 chair=np.repeat(np.asarray(chairs, dtype=str), trials), **arrays)
+
+
+def load_trials(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """``(distances {method: (N, 2)}, labels (N, 2), chair (N,))`` from a ``couch-eval``
+    output folder or its ``trials.npz``. Two evaluations with the same ``--chairs``,
+    ``--trials`` and ``--seed`` ran the same trials, so their distances pair up row by row,
+    e.g. for :func:`couch.synthesis.contact_intervals` of one run's method against another's.
+    """
+    p = Path(path)
+    p = p / "trials.npz" if p.is_dir() else p
+    with np.load(p, allow_pickle=False) as z:
+        dist = {k.removeprefix("distance/"): z[k] for k in z.files if k.startswith("distance/")}
+        if not dist or "labels" not in z.files or "chair" not in z.files:
+            raise ValueError(f"{p}: not a couch-eval trials.npz (distance/<method>, labels, "
+                             "chair)")
+        return dist, z["labels"], z["chair"]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -136,6 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         tmp.write_text(json.dumps({"settings": settings, "rows": rows,
                                    "intervals": intervals, "breakdown": breakdown}, indent=2,
                                   default=float) + "\n")
+    save_trials(out / "trials.npz", raw, labels, [c.name for c in chairs], args.trials)
     print(header + table)
     return 0
 
