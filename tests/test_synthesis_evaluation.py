@@ -175,6 +175,9 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
     np.savez(tmp_path / "other.npz", x=np.zeros(2))
     with pytest.raises(ValueError, match=r"other\.npz: not a couch-eval trials\.npz"):
         load_trials(tmp_path / "other.npz")
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "trials.npz").read_bytes()[:100])
+    with pytest.raises(ValueError, match=r"cut\.npz: cannot read"):
+        load_trials(tmp_path / "cut.npz")
 
 
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):

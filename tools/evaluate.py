@@ -17,6 +17,7 @@ import argparse
 import json
 import sys
 import time
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -78,12 +79,17 @@ def load_trials(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np
     """
     p = Path(path)
     p = p / "trials.npz" if p.is_dir() else p
-    with np.load(p, allow_pickle=False) as z:
-        dist = {k.removeprefix("distance/"): z[k] for k in z.files if k.startswith("distance/")}
-        if not dist or "labels" not in z.files or "chair" not in z.files:
-            raise ValueError(f"{p}: not a couch-eval trials.npz (distance/<method>, labels, "
-                             "chair)")
-        return dist, z["labels"], z["chair"]
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            dist = {k.removeprefix("distance/"): z[k] for k in z.files
+                    if k.startswith("distance/")}
+            if dist and "labels" in z.files and "chair" in z.files:
+                return dist, z["labels"], z["chair"]
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{p}: cannot read ({e})") from e
+    raise ValueError(f"{p}: not a couch-eval trials.npz (distance/<method>, labels, chair)")
 
 
 def _parser() -> argparse.ArgumentParser:
