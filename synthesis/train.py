@@ -763,7 +763,7 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
                     if f.default is not dataclasses.MISSING}, **saved_meta["train_config"]}
         now = json.loads(cfg.to_json())
         if saved != now:
-            # both sides' keys: a run saved before a setting existed lacks it
+            # both sides' keys: a saved setting this couch no longer has counts as different
             diff = sorted(k for k in {*saved, *now} if saved.get(k) != now.get(k))
             raise ValueError(f"{ck_path}: was trained with different settings ({', '.join(diff)});"
                              " use --no-resume or another run folder")
