@@ -63,7 +63,14 @@ from couch.synthesis.nets import (
 )
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.sampling import sample_contacts
-from couch.synthesis.train import TrainConfig, TrainResult, load_trained, train
+from couch.synthesis.train import (
+    TrainConfig,
+    TrainResult,
+    Which,
+    load_trained,
+    parse_which,
+    train,
+)
 
 __all__ = [
     "LAYOUT",
@@ -87,6 +94,7 @@ __all__ = [
     "Synthesizer",
     "TrainConfig",
     "TrainResult",
+    "Which",
     "ace",
     "apd",
     "build_cache",
@@ -102,6 +110,7 @@ __all__ = [
     "load_trained",
     "lock_feet",
     "packed_copy",
+    "parse_which",
     "penetration",
     "planted_feet",
     "pose_feature_apd",

@@ -61,7 +61,13 @@ from couch.synthesis.foot_lock import lock_feet
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.nets import first_linear
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
-from couch.synthesis.train import ENCODER_GROUPS, GATING_GROUPS, load_trained
+from couch.synthesis.train import (
+    ENCODER_GROUPS,
+    GATING_GROUPS,
+    Which,
+    load_trained,
+    which_for,
+)
 
 __all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"]
 
@@ -253,7 +259,9 @@ class Synthesizer:
 
     Args:
         run_dir: the run folder. ``method`` "couch" needs its ``pose`` and ``control`` nets,
-            "baseline" its ``baseline`` net; ``which`` "best" or "last" checkpoints.
+            "baseline" its ``baseline`` net. ``which``: their checkpoints, "best", "last" or an
+            epoch number (kept by ``couch-train --keep-epochs``), or per network
+            (``{"pose": 14, "control": "best"}``; see :func:`couch.synthesis.train.parse_which`).
         hold: seconds a contact set is held (all its hands within ``reach`` m) before the next
             set of a series starts; ``timeout``: seconds after which it starts anyway.
         blend_radius: bidirectional control (NSM, which COUCH's goal-relative root output is
@@ -278,7 +286,7 @@ class Synthesizer:
             path and the hands are unchanged). Off by default: the networks alone.
     """
 
-    def __init__(self, run_dir: str | Path, method: str = "couch", *, which: str = "best",
+    def __init__(self, run_dir: str | Path, method: str = "couch", *, which: Which = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
                  timeout: float = 5.0, blend_radius: float = 1.0, walk_radius: float = 2.0,
                  hand_ik: bool = False, precision: Precision = "fp32",
@@ -297,7 +305,8 @@ class Synthesizer:
                              f"{self.device} use fp32")
         self.run_dir = Path(run_dir)
         net = "pose" if method == "couch" else "baseline"
-        self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which, device)
+        self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which_for(which, net),
+                                                            device)
         self.precision = precision
         self.cfg = feature_config_from_json(json.dumps(meta["feature_config"]))
         self.groups_out = list(meta["groups_out"])
@@ -309,7 +318,7 @@ class Synthesizer:
         self.control_net, self.control_line_end = None, 0.0
         if method == "couch":
             self.control_net, self.control_stats, control_meta = load_trained(
-                run_dir, "control", which, device)
+                run_dir, "control", which_for(which, "control"), device)
             # ControlNet's own features: a run may pair it with another run's PoseNet
             self.control_line_end = feature_config_from_json(
                 json.dumps(control_meta["feature_config"])).control_line_end

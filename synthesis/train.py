@@ -10,6 +10,7 @@ Run layout (``RUN`` = ``-o``)::
     RUN/features.h5            feature cache (data.build_cache; reused while inputs are unchanged)
     RUN/<net>/checkpoint.pt    last finished epoch: model, optimizer, scheduler, RNG, history
     RUN/<net>/best.pt          model with the lowest validation loss
+    RUN/<net>/epochs/NNN.pt    every epoch's model, with ``keep_epochs`` (``--keep-epochs``)
     RUN/<net>/stats.npz        normalisation (FeatureStats) fitted on the training split
     RUN/<net>/log.csv          one row per epoch: lr, losses and their components, seconds
     RUN/<net>/curves.png       loss curves
@@ -748,7 +749,7 @@ def _plot(path: Path, history: list[dict[str, float]], title: str) -> None:
 
 def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: np.ndarray,
                cfg: TrainConfig, out: Path, *, device: torch.device, seed: int, resume: bool,
-               progress: bool, stop_after: int | None) -> NetResult:
+               progress: bool, stop_after: int | None, keep_epochs: bool = False) -> NetResult:
     out.mkdir(parents=True, exist_ok=True)
     ck_path, best_path, stats_path = out / "checkpoint.pt", out / "best.pt", out / "stats.npz"
     checkpoint = None
@@ -857,6 +858,9 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
             best_val = score
             _save({"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json},
                   best_path)
+        if keep_epochs:
+            _save({"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json},
+                  epoch_path(out, epoch))
         _save({"model": state, "optimizer": optimizer.state_dict(),
                "scheduler": scheduler.state_dict(), "epoch": epoch, "best_val": best_val,
                "history": history, "rng": _rng_state(), "meta": meta_json}, ck_path)
@@ -876,7 +880,7 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
           device: str = "cpu", seed: int = 0, resume: bool = True, progress: bool = True,
           threads: int | None = 1, stop_after: int | None = None,
           configs: Mapping[str, TrainConfig] | None = None,
-          features: FeatureConfig | None = None) -> TrainResult:
+          features: FeatureConfig | None = None, keep_epochs: bool = False) -> TrainResult:
     """Train ``net`` (control | pose | contact | baseline | all) on the sequences under
     ``data_paths``, writing everything into ``run_dir`` (see the module docstring).
 
@@ -896,6 +900,10 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
         configs: per-net :class:`TrainConfig` overriding the preset.
         features: the features' settings (default :class:`FeatureConfig`); the run's cache is
             rebuilt when they differ from the ones it was built with.
+        keep_epochs: also keep every epoch's model (``RUN/<net>/epochs/NNN.pt``, loadable with
+            ``load_trained(..., which=N)``): a low validation loss does not pick the epoch that
+            synthesises best in closed loop, so these let ``couch-eval --which`` choose by
+            synthesis instead (README, *Results so far*). PoseNet's is ~11 MB per epoch.
     Raises:
         FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
     """
@@ -923,17 +931,81 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
             train_seqs, val_seqs = split(cache, cfg.val_fraction, seed, cfg.split_by)
             results[n] = _train_net(n, cache, train_seqs, val_seqs, cfg, run / n, device=dev,
                                     seed=seed, resume=resume, progress=progress,
-                                    stop_after=stop_after)
+                                    stop_after=stop_after, keep_epochs=keep_epochs)
     finally:
         torch.set_num_threads(old_threads)
     return TrainResult(run, cache.path, cache.hit, list(cache.skipped), results)
 
 
-def load_trained(run_dir: str | os.PathLike, net: str, which: str = "best",
+def epoch_path(net_dir: Path, epoch: int) -> Path:
+    """Where ``keep_epochs`` keeps a network's model of ``epoch``: ``<net_dir>/epochs/NNN.pt``."""
+    return net_dir / "epochs" / f"{epoch:03d}.pt"
+
+
+def checkpoint_path(run_dir: str | os.PathLike, net: str, which: str | int = "best") -> Path:
+    """The file of ``net``'s ``which`` checkpoint in ``run_dir``: "best" (``best.pt``), "last"
+    (``checkpoint.pt``) or an epoch number (``epochs/NNN.pt``, kept with ``keep_epochs``).
+
+    Raises:
+        ValueError for another ``which``.
+    """
+    folder = Path(run_dir) / net
+    if which == "best":
+        return folder / "best.pt"
+    if which == "last":
+        return folder / "checkpoint.pt"
+    if isinstance(which, int) and not isinstance(which, bool) and which >= 1:
+        return epoch_path(folder, which)
+    raise ValueError(f"checkpoint {which!r}: expected 'best', 'last' or an epoch number >= 1")
+
+
+#: Which checkpoint of a run: "best", "last" or an epoch number, for every network at once or
+#: per network (``{"pose": 14, "control": "best"}``, the others "best").
+Which = str | int | Mapping[str, str | int]
+
+
+def which_for(which: Which, net: str) -> str | int:
+    """``net``'s checkpoint in ``which`` (a mapping's missing networks take "best")."""
+    return which.get(net, "best") if isinstance(which, Mapping) else which
+
+
+def parse_which(spec: str) -> Which:
+    """A ``--which`` argument: "best", "last", an epoch number ("14"), or per network,
+    comma-separated ``net=best|last|N`` ("pose=14,baseline=10"; unnamed networks "best").
+
+    Raises:
+        ValueError naming what is wrong.
+    """
+    def one(text: str) -> str | int:
+        text = text.strip()
+        if text in ("best", "last"):
+            return text
+        if text.isdigit() and int(text) >= 1:
+            return int(text)
+        raise ValueError(f"--which {spec!r}: {text!r} is not 'best', 'last' or an epoch "
+                         f"number >= 1")
+
+    if "=" not in spec:
+        return one(spec)
+    out: dict[str, str | int] = {}
+    for part in spec.split(","):
+        net, sep, value = part.partition("=")
+        net = net.strip()
+        if not sep or net not in NETS:
+            raise ValueError(f"--which {spec!r}: {part!r} is not net=checkpoint with net one "
+                             f"of {', '.join(NETS)}")
+        if net in out:
+            raise ValueError(f"--which {spec!r}: {net} given twice")
+        out[net] = one(value)
+    return out
+
+
+def load_trained(run_dir: str | os.PathLike, net: str, which: str | int = "best",
                  device: str = "cpu") -> tuple[nn.Module, FeatureStats, dict[str, Any]]:
     """A trained network for inference: ``(model in eval mode, stats, meta)``.
 
-    ``which`` is "best" (lowest validation loss) or "last" (the last finished epoch). ``meta``
+    ``which`` is "best" (lowest validation loss), "last" (the last finished epoch) or an epoch
+    number (its model, if the run kept every epoch's: ``keep_epochs``). ``meta``
     holds ``train_config`` (a :class:`TrainConfig` dict), ``model_args``, ``feature_config``,
     the split and, for PoseNets, ``groups_in``/``groups_out``. Inputs are normalised with
     ``stats`` and fed to PoseNets through :func:`pose_inputs`.
@@ -941,9 +1013,11 @@ def load_trained(run_dir: str | os.PathLike, net: str, which: str = "best",
     if net not in NETS:
         raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)}")
     folder = Path(run_dir) / net
-    path = folder / ("best.pt" if which == "best" else "checkpoint.pt")
+    path = checkpoint_path(run_dir, net, which)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file (has {net} been trained in {run_dir}?)")
+        hint = ("was it trained that long, with --keep-epochs?" if isinstance(which, int)
+                else f"has {net} been trained in {run_dir}?")
+        raise FileNotFoundError(f"{path}: no such file ({hint})")
     ck = torch.load(path, map_location=device, weights_only=True)
     meta = json.loads(ck["meta"])
     if net in ENCODER_GROUPS:
@@ -996,6 +1070,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="torch CPU threads (default 1: fastest for these small nets)")
     p.add_argument("--no-resume", action="store_true",
                    help="start from scratch even if checkpoints exist")
+    p.add_argument("--keep-epochs", action="store_true",
+                   help="also keep every epoch's model (RUN/<net>/epochs/NNN.pt) to choose one "
+                        "by synthesis: couch-eval --which")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     return p
 
@@ -1032,7 +1109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = train(args.data, args.output, net=args.net, preset=args.preset,
                        epochs=args.epochs, device=args.device, seed=args.seed,
                        resume=not args.no_resume, progress=not args.quiet, threads=args.threads,
-                       configs=configs,
+                       configs=configs, keep_epochs=args.keep_epochs,
                        features=(None if args.control_line_end is None else
                                  FeatureConfig(control_line_end=args.control_line_end)))
     except (FileNotFoundError, ValueError, SchemaError) as e:

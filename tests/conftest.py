@@ -71,9 +71,11 @@ def motion_sim(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def ci_run(motion_sim, tmp_path_factory):
-    """Every network trained with the ``ci`` preset on :func:`motion_sim` (a TrainResult)."""
+    """Every network trained with the ``ci`` preset on :func:`motion_sim` (a TrainResult),
+    every epoch's model kept (``keep_epochs``)."""
     from couch.synthesis.train import train
 
     run = tmp_path_factory.mktemp("train_run")
-    return train([motion_sim], run, net="all", preset="ci", progress=False, seed=0)
+    return train([motion_sim], run, net="all", preset="ci", progress=False, seed=0,
+                 keep_epochs=True)
 

@@ -127,6 +127,21 @@ def test_series_moves_to_the_next_contact_set(ci_run, scene, chair):
     assert np.isnan(r.targets[0, first + 1, 0, 0]) and np.isfinite(r.targets[0, first + 1, 1, 0])
 
 
+def test_which_picks_each_networks_checkpoint(ci_run, scene, chair, synth):
+    """Per-network epochs: the best checkpoints' own epochs synthesise exactly what "best"
+    does; another PoseNet epoch moves the motion."""
+    best = {net: int(torch.load(ci_run.nets[net].dir / "best.pt", weights_only=True)["epoch"])
+            for net in ("pose", "control")}
+    starts, series = np.array([[0.2, 0.9, np.pi]]), np.array([[chair[2], [np.nan] * 3]])
+    want = synth.synthesize(scene, starts, series, seconds=1.0).joints
+    same = Synthesizer(ci_run.run_dir, "couch", which=best)
+    np.testing.assert_array_equal(same.synthesize(scene, starts, series, seconds=1.0).joints,
+                                  want)
+    other = 1 if best["pose"] != 1 else 2
+    moved = Synthesizer(ci_run.run_dir, "couch", which={"pose": other})
+    assert np.abs(moved.synthesize(scene, starts, series, seconds=1.0).joints - want).max() > 1e-3
+
+
 def test_baseline_runs_in_the_same_harness(ci_run, scene, chair):
     syn = Synthesizer(ci_run.run_dir, "baseline")
     assert syn.control_net is None
@@ -210,6 +225,8 @@ def test_cli_writes_motion_schema_and_preview(ci_run, chair, tmp_path, capsys):
     (["--start", "0,1"], "--start"),
     (["--seconds", "0"], "--seconds"),
     (["--precision", "bf16"], "invalid choice: 'bf16'"),
+    (["--which", "pose=99"], "099.pt: no such file"),
+    (["--which", "newest"], "--which 'newest'"),
 ])
 def test_cli_bad_arguments(ci_run, chair, tmp_path, capsys, args, message):
     mesh = save_mesh(tmp_path / "c.obj", chair[0], chair[1])

@@ -184,6 +184,8 @@ def test_couch_eval_bad_input(ci_run, tmp_path, capsys):
     assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--trials", "0"]) == 2
     assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--chair-dir", str(tmp_path)]) == 2
     assert "no .obj/.ply" in capsys.readouterr().err
+    assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--which", "baseline=0"]) == 2
+    assert "'0' is not 'best', 'last' or an epoch number" in capsys.readouterr().err
 
 
 def test_simulated_chairs_are_new_and_varied():

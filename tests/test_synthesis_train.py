@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import shutil
 
 import h5py
@@ -40,6 +41,7 @@ from couch.synthesis.train import (
     load_trained,
     main,
     output_weights,
+    parse_which,
     pose_feedback,
     pose_inputs,
     preset_config,
@@ -161,6 +163,51 @@ def test_load_trained_matches_the_trained_model(trained):
         assert meta["train_config"]["preset"] == "ci"
         assert best.sample(x["contact_condition"][:2], 3).shape == (2, 3, 6)
     assert isinstance(FeatureStats.load(trained.nets["pose"].dir / "stats.npz"), FeatureStats)
+
+
+def test_kept_epochs_load_by_number(trained):
+    """``keep_epochs`` writes every epoch's model; ``which=N`` loads epoch N: the last equals
+    ``checkpoint.pt``'s, best.pt's epoch equals best.pt, the first differs from the last."""
+    for net in ("pose", "control"):
+        r = trained.nets[net]
+        assert r.epochs >= 2
+        names = sorted(p.name for p in (r.dir / "epochs").iterdir())
+        assert names == [f"{e:03d}.pt" for e in range(1, r.epochs + 1)]
+        best_epoch = int(torch.load(r.dir / "best.pt", weights_only=True)["epoch"])
+        pairs = [("last", r.epochs, True), ("best", best_epoch, True), ("last", 1, False)]
+        for named, number, same in pairs:
+            a = load_trained(trained.run_dir, net, which=named)[0].state_dict()
+            b = load_trained(trained.run_dir, net, which=number)[0].state_dict()
+            equal = all(torch.equal(a[k], b[k]) for k in a)
+            assert equal == same, (net, named, number)
+    with pytest.raises(FileNotFoundError, match=rf"epochs/{trained.nets['pose'].epochs + 1:03d}"
+                                                r"\.pt: no such file.*--keep-epochs"):
+        load_trained(trained.run_dir, "pose", which=trained.nets["pose"].epochs + 1)
+    for bad in ("first", 0, -1, True):
+        with pytest.raises(ValueError, match="'best', 'last' or an epoch number"):
+            load_trained(trained.run_dir, "pose", which=bad)
+
+
+@pytest.mark.parametrize("spec, want", [
+    ("best", "best"), ("last", "last"), ("14", 14),
+    ("pose=14, control=best", {"pose": 14, "control": "best"}),
+    ("baseline=last", {"baseline": "last"}),
+])
+def test_parse_which(spec, want):
+    assert parse_which(spec) == want
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("0", "'0' is not 'best', 'last' or an epoch number"),
+    ("newest", "'newest' is not"),
+    ("posenet=3", "'posenet=3' is not net=checkpoint"),
+    ("pose=3,pose=4", "pose given twice"),
+    ("pose=3,14", "'14' is not net=checkpoint"),
+    ("pose=-2", "'-2' is not"),
+])
+def test_parse_which_refuses(spec, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        parse_which(spec)
 
 
 def test_pose_feedback_turns_next_pose_targets_into_the_next_rows_inputs(trained):

@@ -32,6 +32,7 @@ from couch.synthesis import (
     contact_intervals,
     format_intervals,
     format_table,
+    parse_which,
 )
 from couch.synthesis.data import find_sequences, load_sequence
 from couch.synthesis.evaluation import (
@@ -113,6 +114,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--foot-lock", action="store_true",
                    help="every method: hold planted feet by leg IK after synthesis (a "
                         "post-process; off: the networks' own feet)")
+    p.add_argument("--which", default="best",
+                   help="checkpoints: best (lowest validation loss), last, an epoch N (kept "
+                        "by couch-train --keep-epochs), or per network, e.g. "
+                        "pose=14,baseline=10 (the others best)")
     p.add_argument("-q", "--quiet", action="store_true")
     return p
 
@@ -129,8 +134,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.trials < 1 or args.seconds <= 0 or (args.chairs < 1 and not args.chair_dir):
             raise ValueError("--trials, --seconds and --chairs must be positive")
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+        which = parse_which(args.which)
         synths = {m: Synthesizer(args.baseline_run if m == "baseline" and args.baseline_run
-                                 else args.run, m.removesuffix(IK_SUFFIX),
+                                 else args.run, m.removesuffix(IK_SUFFIX), which=which,
                                  hand_ik=m.endswith(IK_SUFFIX), precision=args.precision,
                                  foot_lock=args.foot_lock)
                   for m in methods}

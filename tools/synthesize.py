@@ -33,6 +33,7 @@ from couch.synthesis import (
     Scene,
     SynthesisResult,
     Synthesizer,
+    parse_which,
     sample_contacts,
     save_npz,
     write_processed_sessions,
@@ -129,6 +130,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--precision", default="fp32", choices=PRECISIONS,
                    help="weights of the networks' large layers at run time: fp32 as trained, fp16 "
                         "(outputs within ~1e-4 m, ~1.6x faster at batch 1) or int8 (CPU only)")
+    p.add_argument("--which", default="best",
+                   help="checkpoints: best, last, an epoch N (couch-train --keep-epochs), or "
+                        "per network, e.g. pose=14,control=best")
     p.add_argument("-q", "--quiet", action="store_true")
     return p
 
@@ -146,7 +150,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         starts = [parse_start(s) for s in args.start]
         if args.seconds <= 0:
             raise ValueError(f"--seconds must be > 0, got {args.seconds}")
-        syn = Synthesizer(args.run, args.method, device=args.device, hand_ik=args.hand_ik,
+        syn = Synthesizer(args.run, args.method, which=parse_which(args.which),
+                          device=args.device, hand_ik=args.hand_ik,
                           precision=args.precision, foot_lock=args.foot_lock)
         vertices, faces = load_mesh(args.chair)
         scene = Scene.from_mesh(vertices, faces, syn.cfg, name=Path(args.chair).stem)
