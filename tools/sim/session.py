@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion-only", action="store_true",
                     help="write ground-truth motion only (no rendering), --sequences of them")
     ap.add_argument("--sequences", type=int, default=1)
-    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
         if args.motion_only:
