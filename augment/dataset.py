@@ -125,7 +125,8 @@ def _min_area_axis(xz: np.ndarray) -> np.ndarray:
     return np.array([np.cos(best), np.sin(best)])
 
 
-def canonical_chair_frame(vertices_world: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def canonical_chair_frame(vertices_world: np.ndarray, faces: np.ndarray, *,
+                          warn: bool = True) -> np.ndarray:
     """(4, 4) world-from-chair transform of a chair mesh placed in the levelled world.
 
     The chair frame is :mod:`couch.augment.shapes`'s (seat centred on x = z = 0, front +Z,
@@ -134,11 +135,12 @@ def canonical_chair_frame(vertices_world: np.ndarray, faces: np.ndarray) -> np.n
     of that rectangle with the one-sided backrest (``shapes._back_direction``) as -Z. The
     rotation is about +Y only; the origin is the seat rectangle's centre at y = 0 (the floor).
     A seat without a backrest keeps the rectangle's first axis as +X (the front is then
-    ambiguous; logged).
+    ambiguous; logged as a warning when ``warn``).
 
     Args:
         vertices_world: (V, 3) metres, world (Y up, floor y = 0).
         faces: (F, 3) int; a closed mesh gives the best results.
+        warn: log a seat without a backrest (a stool) as a warning.
 
     Raises:
         ValueError: no seat (upward-facing surface) found.
@@ -162,7 +164,9 @@ def canonical_chair_frame(vertices_world: np.ndarray, faces: np.ndarray) -> np.n
                                       np.random.default_rng(0))
     back = _back_direction(samples, dA, seat_h - float(centre[1]), _seat_box(aligned, f, seat))
     if back is None:
-        log.warning("canonical_chair_frame: no backrest found; the chair's front is ambiguous")
+        if warn:
+            log.warning("canonical_chair_frame: no backrest found; the chair's front is "
+                        "ambiguous")
         back = (2, -1)
     turn = _YAW_TO_BACK_NEG_Z[back]  # chair from aligned
     out = np.eye(4)
