@@ -854,13 +854,12 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         # Without a validation set the training loss picks the best model.
         score = row["val_loss"] if math.isfinite(row["val_loss"]) else row["train_loss"]
         state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        record = {"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json}
         if score < best_val:
             best_val = score
-            _save({"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json},
-                  best_path)
+            _save(record, best_path)
         if keep_epochs:
-            _save({"model": state, "epoch": epoch, "val_loss": score, "meta": meta_json},
-                  epoch_path(out, epoch))
+            _save(record, epoch_path(out, epoch))
         _save({"model": state, "optimizer": optimizer.state_dict(),
                "scheduler": scheduler.state_dict(), "epoch": epoch, "best_val": best_val,
                "history": history, "rng": _rng_state(), "meta": meta_json}, ck_path)
@@ -901,9 +900,9 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
         features: the features' settings (default :class:`FeatureConfig`); the run's cache is
             rebuilt when they differ from the ones it was built with.
         keep_epochs: also keep every epoch's model (``RUN/<net>/epochs/NNN.pt``, loadable with
-            ``load_trained(..., which=N)``): a low validation loss does not pick the epoch that
-            synthesises best in closed loop, so these let ``couch-eval --which`` choose by
-            synthesis instead (README, *Results so far*). PoseNet's is ~11 MB per epoch.
+            ``load_trained(..., which=N)``), so that ``couch-eval --which`` can score epochs by
+            closed-loop synthesis rather than by validation loss (README, *Results so far*).
+            PoseNet's is ~11 MB per epoch.
     Raises:
         FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
     """
