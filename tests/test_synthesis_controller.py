@@ -331,6 +331,33 @@ def test_far_characters_are_told_to_walk():
     np.testing.assert_array_equal(walk_when_far(future, root, goal, 0.0), future)
 
 
+def test_near_turned_characters_are_told_to_sit():
+    """Within ``sit_radius`` of the goal and turned to within 45 degrees of its heading, the
+    fed-back action labels are blended towards sit, more the farther ahead the sample (the
+    present unchanged, one second ahead all sit); farther, not turned, or with the radius 0,
+    they are the network's."""
+    from couch.synthesis.controller import sit_when_near
+    from couch.synthesis.features import IDLE, SIT
+
+    goal = yaw_transform(0.0, 0.0, np.pi)[None].repeat(4, 0)  # facing -Z
+    root = yaw_transform(np.array([0.0, 0.0, 0.3, 0.6]), np.array([0.2, 0.2, 0.0, 0.0]),
+                         np.array([np.pi + 0.5, np.pi - 1.0, -np.pi + 0.2, np.pi]))
+    offsets = np.arange(0, 31, 5)
+    future = np.zeros((4, 7, 12))
+    future[..., :9] = np.arange(9)
+    future[..., 9 + IDLE] = 1.0
+    out = sit_when_near(future, root, goal, 0.4, offsets)
+    w = offsets / 30
+    for b in (0, 2):  # 20-30 cm away, turned 29 and 11 degrees from the goal's heading
+        np.testing.assert_allclose(out[b, :, 9 + SIT], w)
+        np.testing.assert_allclose(out[b, :, 9 + IDLE], 1 - w)
+        np.testing.assert_array_equal(out[b, :, :9], future[b, :, :9])
+    np.testing.assert_array_equal(out[1], future[1])  # turned 57 degrees away
+    np.testing.assert_array_equal(out[3], future[3])  # 60 cm away
+    assert future[0, -1, 9 + IDLE] == 1.0  # the input is not changed in place
+    np.testing.assert_array_equal(sit_when_near(future, root, goal, 0.0, offsets), future)
+
+
 def test_runtime_reads_the_full_nets_predictions(synth, ci_run):
     """The runtime cuts the predictions it never reads from PoseNet's last layer; what it reads
     equals the uncut net's prediction of the same inputs."""
