@@ -205,12 +205,8 @@ def sit_when_near(future: np.ndarray, root: np.ndarray, goal: np.ndarray, radius
     """
     if radius <= 0:
         return future
-    dist = np.hypot(*(root[:, [0, 2], 3] - goal[:, [0, 2], 3]).T)
-    # the angle between the forward (+Z) axes on the floor
-    a, b = root[:, [0, 2], 2], goal[:, [0, 2], 2]
-    cos = np.einsum("bi,bi->b", a, b) / np.maximum(
-        np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-9)
-    near = (dist < radius) & (cos > np.cos(facing))
+    rel = root_update(goal, root)  # (dx, dz, dyaw) of the root in the goal's frame
+    near = (np.hypot(rel[:, 0], rel[:, 1]) < radius) & (np.abs(rel[:, 2]) < facing)
     w = (np.asarray(offsets, np.float64) / max(float(np.max(offsets)), 1.0))[None, :, None]
     out = np.array(future)
     out[near, :, 9:] = (1 - w) * out[near, :, 9:] + w * np.eye(3)[SIT]
