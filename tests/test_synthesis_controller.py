@@ -358,6 +358,32 @@ def test_near_turned_characters_are_told_to_sit():
     np.testing.assert_array_equal(sit_when_near(future, root, goal, 0.0, offsets), future)
 
 
+def test_lost_plans_restart_from_the_straight_line():
+    """ControlNet reads its fed-back plan, but the straight line where the control just
+    switched on or where the plan's present sample is more than ``radius`` from the hand; zero
+    for hands without a contact; radius 0 keeps every running plan."""
+    from couch.synthesis.controller import replan_lost
+
+    k = np.linspace(1.0, 0.0, 7)
+    straight = np.zeros((2, 2, 7, 3))
+    straight[..., 0] = 0.5 * k  # the hand 50 cm from its contact
+    fed = np.zeros((2, 2, 7, 3))
+    fed[0, 0, :, 0] = 0.45 * k  # on track, 5 cm off
+    fed[0, 1, :, 0] = 0.0  # collapsed onto the contact: 50 cm off
+    fed[1, 0, :, 1] = 0.3  # elsewhere, but the control just switched on
+    fed[1, 1, :, 0] = 0.1  # no contact for this hand
+    fresh = np.array([[False, False], [True, False]])
+    mask = np.array([[True, True], [True, False]])
+    out = replan_lost(fed, straight, fresh, mask, 0.2)
+    np.testing.assert_array_equal(out[0, 0], fed[0, 0])
+    np.testing.assert_array_equal(out[0, 1], straight[0, 1])
+    np.testing.assert_array_equal(out[1, 0], straight[1, 0])
+    np.testing.assert_array_equal(out[1, 1], 0.0)
+    kept = replan_lost(fed, straight, fresh, mask, 0.0)
+    np.testing.assert_array_equal(kept[0, 1], fed[0, 1])
+    np.testing.assert_array_equal(kept[1, 0], straight[1, 0])
+
+
 def test_runtime_reads_the_full_nets_predictions(synth, ci_run):
     """The runtime cuts the predictions it never reads from PoseNet's last layer; what it reads
     equals the uncut net's prediction of the same inputs."""
