@@ -223,7 +223,7 @@ def replan_lost(fed_back: np.ndarray, straight: np.ndarray, fresh: np.ndarray,
     never replans a running plan.
 
     ControlNet is trained on 2 s windows with its own plan fed back. Over a 16 s trial its plan
-    falls behind the hand while the body walks up and turns (traced on 64 trials of one
+    drifts from the hand while the body walks up and turns (traced on 64 trials of one
     training at 0.3 m: 27 replans a trial, a median 4 s in, with the hand 71 cm from its
     contact); replanned, that training's couch hands ended 15-21 % closer on the test
     chairs and 93-95 % of its trials sat where 84-91 % had (README, *Results so far*). At
@@ -319,8 +319,8 @@ class Synthesizer:
             its heading, the predicted trajectory's action labels are blended towards sit
             before they are fed back (:func:`sit_when_near`: the sit is the command there, as
             the walk is far away); 0 leaves them to the network.
-        replan: ControlNet reads its own last plan of each hand as its next input (the
-            paper's scheduled sampling at its end); where that plan's present sample is more
+        replan: ControlNet reads its own last plan of each hand as its next input (as at
+            the end of its scheduled-sampling training); where that plan's present sample is more
             than this many metres from the hand, it reads the straight line from the hand to
             the contact instead, as when the control switches on (:func:`replan_lost`); 0
             never replans.
