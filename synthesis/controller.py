@@ -60,6 +60,7 @@ from couch.synthesis.features import (
 from couch.synthesis.foot_lock import lock_feet
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.nets import first_linear
+from couch.synthesis.plans import REPLAN_RADIUS, control_step, replan_lost
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.train import (
     ENCODER_GROUPS,
@@ -213,29 +214,6 @@ def sit_when_near(future: np.ndarray, root: np.ndarray, goal: np.ndarray, radius
     return out
 
 
-def replan_lost(fed_back: np.ndarray, straight: np.ndarray, fresh: np.ndarray,
-                mask: np.ndarray, radius: float) -> np.ndarray:
-    """ControlNet's control input h̃ (B,2,K,3): its fed-back plan ``fed_back``, or the straight
-    line ``straight`` (both (B,2,K,3), relative to the contact, root frame) for hands whose
-    control just switched on (``fresh``, (B,2) bool) or whose plan is lost: its first sample
-    (where the hand is now, as last frame predicted it) more than ``radius`` m from the
-    straight line's (where the hand is). Zeros where ``mask`` (B,2) is False; ``radius`` <= 0
-    never replans a running plan.
-
-    ControlNet is trained on 2 s windows with its own plan fed back. Over a 16 s trial its plan
-    drifts from the hand while the body walks up and turns (traced on 64 trials of one
-    training at 0.3 m: 27 replans a trial, a median 4 s in, with the hand 71 cm from its
-    contact); replanned, that training's couch hands ended 15-21 % closer on the test
-    chairs and 93-95 % of its trials sat where 84-91 % had (README, *Results so far*). At
-    0.1 m it also restarts plans that collapsed after a touch onto the all-zero plan of a hand
-    with no contact (the hand 15 cm off): ACE was no better.
-    """
-    lost = np.zeros(mask.shape, bool)
-    if radius > 0:
-        lost = np.linalg.norm(fed_back[..., 0, :] - straight[..., 0, :], axis=-1) > radius
-    return np.where((fresh | lost)[..., None, None], straight, fed_back) * mask[..., None, None]
-
-
 @dataclasses.dataclass
 class SynthesisResult:
     """B synthesised motions of T frames at ``fps`` (world frame, metres, radians).
@@ -342,7 +320,7 @@ class Synthesizer:
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: Which = "best",
                  device: str = "cpu", hold: float = 1.0, reach: float = 0.05,
                  timeout: float = 5.0, blend_radius: float = 1.0, walk_radius: float = 2.0,
-                 sit_radius: float = 0.4, replan: float = 0.3,
+                 sit_radius: float = 0.4, replan: float = REPLAN_RADIUS,
                  hand_ik: bool = False, precision: Precision = "fp32",
                  foot_lock: bool = False) -> None:
         if method not in METHODS:
@@ -520,10 +498,6 @@ class Synthesizer:
         state.hands = self._hands(root, state.jpos, state.jrot)
         return state
 
-    def _norm(self, stats, groups: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-        return {g: torch.as_tensor(stats.normalize(g, x.reshape(len(x), -1)).astype(np.float32),
-                                   device=self.device) for g, x in groups.items()}
-
     def _control(self, s: _State, hands: np.ndarray, targets: np.ndarray, mask: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
         """ControlNet step: C+ (B,2,7,3) and phases (B,2,7), zero for hands whose control is
@@ -540,22 +514,8 @@ class Synthesizer:
         hphase = hphase * mask[..., None]
         if s.lstm is None:
             s.lstm = net.initial_state(batch, self.device)
-        restart = fresh.any(-1) & ~s.on.any(-1)
-        if restart.any():
-            h0, c0 = net.initial_state(int(restart.sum()), self.device)
-            idx = torch.as_tensor(np.flatnonzero(restart), device=self.device)
-            s.lstm[0][:, idx], s.lstm[1][:, idx] = h0, c0
-        x = self._norm(self.control_stats, {"joint_positions": s.jpos, "control_line": line,
-                                            "hand_phases": hphase})
-        control = torch.cat([x["control_line"], x["hand_phases"]], -1)
-        with torch.no_grad():
-            out, s.lstm = net.step(x["joint_positions"], control, s.lstm)
-        out = out.cpu().numpy().astype(np.float64)
-        n_pos = line[0].size
-        pos = self.control_stats.denormalize("next_control_positions", out[:, :n_pos])
-        ph = self.control_stats.denormalize("next_control_phases", out[:, n_pos:])
-        pos = pos.reshape(line.shape) * mask[..., None, None]
-        ph = np.clip(ph.reshape(batch, 2, -1), 0.0, 1.0) * mask[..., None]
+        pos, ph, s.lstm = control_step(net, self.control_stats, s.lstm, s.jpos, line, hphase,
+                                       mask, fresh.any(-1) & ~s.on.any(-1), self.device)
         s.line, s.c_phase = pos, ph
         return pos, ph
 

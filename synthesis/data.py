@@ -280,6 +280,21 @@ class FeatureCache:
                 self._data[name] = np.asarray(ds[()], dtype=np.float32)
         return self._data[name]
 
+    def replace(self, name: str, values: np.ndarray) -> None:
+        """Use ``values`` (N_total, dim) for the per-row group ``name`` from now on, in memory
+        only (the file is untouched): e.g. PoseNet's control input as a trained ControlNet
+        makes it (:func:`couch.synthesis.plans.replay_plans`)."""
+        values = np.asarray(values, dtype=np.float32)
+        if name not in self.row_groups or values.shape != (self.num_rows, self.dims[name]):
+            raise ValueError(f"{self.path}: cannot replace {name!r} with an array of shape "
+                             f"{values.shape}: expected a per-row group of shape "
+                             f"({self.num_rows}, {self.dims.get(name, '?')})")
+        self._data[name] = values
+
+    def restore(self, name: str) -> None:
+        """Undo :meth:`replace`: ``name`` is read from the file again on its next use."""
+        self._data.pop(name, None)
+
     def rows(self, name: str, indices: np.ndarray) -> np.ndarray:
         """(len(indices), dim) float32 values of ``name`` at the given global rows (a
         per-sequence group is looked up through each row's sequence)."""

@@ -75,6 +75,7 @@ from couch.synthesis.nets import (
     rollout,
     scheduled_sampling_probability,
 )
+from couch.synthesis.plans import REPLAN_RADIUS, replay_plans
 
 __all__ = [
     "ENCODER_GROUPS",
@@ -93,6 +94,13 @@ __all__ = [
 
 NETS: tuple[str, ...] = ("control", "pose", "contact", "baseline")
 PRESETS: tuple[str, ...] = ("paper", "cpu", "ci")
+#: Epoch set as ``teacher_forcing_until`` for a ControlNet trained without scheduled sampling
+#: (teacher probability 1 in every epoch of any run); finite, so the config stays plain JSON.
+TEACHER_ALWAYS = 1e9
+#: Where PoseNet's control input comes from (``TrainConfig.control_source``).
+CONTROL_SOURCES: tuple[str, ...] = ("data", "controlnet")
+#: PoseNet's control input groups, which ``control_source="controlnet"`` replaces.
+CONTROL_GROUPS: tuple[str, ...] = ("control_root_positions", "control_phases")
 
 #: PoseNet encoder name (Table 5) -> the feature groups concatenated as its input.
 ENCODER_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
@@ -163,6 +171,12 @@ class TrainConfig:
             (which place the hands) in the loss, every other output weighing 1 (1: a plain
             MSE, the paper's recipe). Validation uses the same weights, so ``best.pt`` is
             picked by the loss that was trained.
+        control_source: PoseNet only: where its control input (C⁺ and the hands' local
+            phases) comes from. ``"data"``: the data's future hand paths (the paper's recipe);
+            ``"controlnet"``: the plans of the run's trained ControlNet (``RUN/control``,
+            trained first) replayed over the same sequences as the runtime makes them
+            (:func:`couch.synthesis.plans.replay_plans`), so that PoseNet learns to follow
+            the control input it will be given rather than an exact future.
         window: ControlNet frames per training window (paper 60).
         stride: ControlNet rows between window starts (0: window // 2).
         val_fraction: share of chairs (or sequences) held out for validation.
@@ -183,6 +197,7 @@ class TrainConfig:
     rollout: int = 0
     rollout_epochs: int = 0
     hand_weight: float = 1.0
+    control_source: str = "data"
     window: int = 60
     stride: int = 0
     val_fraction: float = 0.1
@@ -220,9 +235,13 @@ def preset_config(net: str, preset: str = "paper", epochs: int | None = None) ->
     ``cpu``: the same recipe on mid-size networks (hidden 64-256, 6 experts, LSTM 256) for 15
     epochs (ControlNet), 16 (PoseNet, the baseline) and 100 (ContactNet), for training runs
     of a few hundred simulated sequences on a CPU in about half an hour per network; PoseNet
-    and the baseline with input noise and their last 4 epochs closed loop. Trained for 30
-    epochs, every network reached a lower validation loss and synthesised worse: the hands
-    ended 11-47 % farther from their contacts (README, session 25).
+    and the baseline with input noise and their last 4 epochs closed loop; ControlNet
+    without scheduled sampling (the data's straight line read in every frame): its closed-loop
+    plans at runtime (fed back, replanned where lost) put the hands 6 % closer than the
+    scheduled-sampling ControlNet's on average over three trainings and two test chair sets
+    (README, session 30). Trained for 30 epochs, every network reached a lower validation
+    loss and synthesised worse: the hands ended 11-47 % farther from their contacts (README,
+    session 25).
     ``ci``: the same recipe on tiny networks (hidden 32-64, 3 experts, 20-frame windows, a few
     epochs) and a faster scheduled-sampling ramp, for tests and smoke runs.
     """
@@ -237,9 +256,11 @@ def preset_config(net: str, preset: str = "paper", epochs: int | None = None) ->
                                          lstm_hidden=64, teacher_forcing_until=1.0,
                                          teacher_forcing_off_at=4.0)
         elif cpu:
+            # No scheduled sampling: the straight line from the data's hand in every frame
+            # (see the docstring).
             ncfg = ControlNetConfig(pose_encoder=(128, 128), control_encoder=(128, 128),
-                                    lstm_hidden=256, teacher_forcing_until=2.0,
-                                    teacher_forcing_off_at=8.0)
+                                    lstm_hidden=256, teacher_forcing_until=TEACHER_ALWAYS,
+                                    teacher_forcing_off_at=TEACHER_ALWAYS)
         else:
             ncfg = ControlNetConfig()
         kw: dict[str, Any] = dict(lr=3e-3 if ci else 1e-3, window=20 if ci else 60,
@@ -367,9 +388,10 @@ def _control_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: 
         assert isinstance(model, ControlNet)
         control = torch.cat([batch["control_line"], batch["hand_phases"]], -1)
         target = torch.cat([batch["next_control_positions"], batch["next_control_phases"]], -1)
-        # Validation runs closed loop (every fed-back step uses the prediction), as at runtime,
-        # so its loss is comparable across epochs while the teacher probability falls.
-        p = scheduled_sampling_probability(epoch, ncfg) if training else 0.0
+        # Validation runs at the teacher probability training ends at (closed loop once
+        # scheduled sampling has run its course, as at runtime), whatever the epoch, so its
+        # loss is comparable across epochs while the training probability falls.
+        p = scheduled_sampling_probability(epoch if training else cfg.epochs, ncfg)
         out = rollout(model, batch["joint_positions"], control, p, control_traj=traj_cols,
                       out_traj=traj_cols, generator=gen).out
         terms = control_loss(out, target, batch["control_line"], ncfg.loss_weights,
@@ -389,6 +411,9 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     if missing:
         raise ValueError(f"{cache.path}: feature groups {missing} missing (cache built by an "
                          "older couch? delete it to rebuild)")
+    if cfg.control_source not in CONTROL_SOURCES:
+        raise ValueError(f"unknown control_source {cfg.control_source!r}; choose from "
+                         f"{', '.join(CONTROL_SOURCES)}")
     groups_in, groups_out = list(spec["inputs"]), list(spec["targets"])
     stats = stats or fit_stats(cache, groups_in + groups_out, cache.sequence_rows(train))
     d = cache.dims
@@ -749,7 +774,8 @@ def _plot(path: Path, history: list[dict[str, float]], title: str) -> None:
 
 def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: np.ndarray,
                cfg: TrainConfig, out: Path, *, device: torch.device, seed: int, resume: bool,
-               progress: bool, stop_after: int | None, keep_epochs: bool = False) -> NetResult:
+               progress: bool, stop_after: int | None, keep_epochs: bool = False,
+               extra_meta: Mapping[str, Any] | None = None) -> NetResult:
     out.mkdir(parents=True, exist_ok=True)
     ck_path, best_path, stats_path = out / "checkpoint.pt", out / "best.pt", out / "stats.npz"
     checkpoint = None
@@ -791,7 +817,7 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
             "cache": str(cache.path), "cache_hash": cache.source_hash,
             # sources, not names: folders of simulated sequences repeat the names
             "split": {"train": [cache.sources[i] for i in train_seqs],
-                      "val": [cache.sources[i] for i in val_seqs]}}
+                      "val": [cache.sources[i] for i in val_seqs]}, **(extra_meta or {})}
     # Not sort_keys: PoseNet concatenates its encoder and gating groups in dict order.
     meta_json = json.dumps(meta)
 
@@ -928,12 +954,38 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
         for n in nets:
             cfg = cfgs[n]
             train_seqs, val_seqs = split(cache, cfg.val_fraction, seed, cfg.split_by)
-            results[n] = _train_net(n, cache, train_seqs, val_seqs, cfg, run / n, device=dev,
-                                    seed=seed, resume=resume, progress=progress,
-                                    stop_after=stop_after, keep_epochs=keep_epochs)
+            plans = (_use_controlnet_plans(cache, run, dev, progress)
+                     if n == "pose" and cfg.control_source == "controlnet" else None)
+            try:
+                results[n] = _train_net(n, cache, train_seqs, val_seqs, cfg, run / n,
+                                        device=dev, seed=seed, resume=resume,
+                                        progress=progress, stop_after=stop_after,
+                                        keep_epochs=keep_epochs, extra_meta=plans)
+            finally:
+                for g in CONTROL_GROUPS:
+                    cache.restore(g)
     finally:
         torch.set_num_threads(old_threads)
     return TrainResult(run, cache.path, cache.hit, list(cache.skipped), results)
+
+
+def _use_controlnet_plans(cache: FeatureCache, run: Path, device: torch.device,
+                          progress: bool) -> dict[str, Any]:
+    """Replace the cache's PoseNet control input by the run's ControlNet's replayed plans
+    (``TrainConfig.control_source="controlnet"``); returns what PoseNet's meta records."""
+    path = checkpoint_path(run, "control", "best")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (control_source 'controlnet' replays "
+                                f"the run's ControlNet: train --net control first)")
+    net, stats, _ = load_trained(run, "control", "best", str(device))
+    if progress:
+        print(f"replaying {path} over {cache.num_sequences} sequences for PoseNet's control "
+              "input")
+    assert isinstance(net, ControlNet)
+    positions, phases = replay_plans(cache, net, stats, device=device)
+    cache.replace("control_root_positions", positions)
+    cache.replace("control_phases", phases)
+    return {"control_plans": {"checkpoint": str(path), "replan": REPLAN_RADIUS}}
 
 
 def epoch_path(net_dir: Path, epoch: int) -> Path:
@@ -1059,6 +1111,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--hand-weight", type=float, default=None, metavar="W",
                    help="PoseNet and baseline: loss weight of the wrists' next positions and "
                         "rotations, every other output 1 (default 1: a plain MSE)")
+    p.add_argument("--control-source", default=None, choices=list(CONTROL_SOURCES),
+                   help="PoseNet: its control input from the data's future hand paths (data, "
+                        "the paper's and the default) or from the run's trained ControlNet "
+                        "replayed over the same sequences (controlnet; train --net control "
+                        "first)")
     p.add_argument("--control-line-end", type=float, default=None, metavar="M",
                    help="metres above each contact where ControlNet's straight line ends "
                         f"(default {FeatureConfig().control_line_end:g}; changes the features, "
@@ -1102,8 +1159,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     overrides = {k: v for k, v in (("rollout_epochs", args.rollout_epochs),
                                    ("rollout", args.rollout),
                                    ("hand_weight", args.hand_weight)) if v is not None}
-    configs = ({n: dataclasses.replace(preset_config(n, args.preset, args.epochs), **overrides)
-                for n in ("pose", "baseline")} if overrides else None)
+    # the baseline has no ControlNet input: --control-source is PoseNet's alone
+    pose_only = {} if args.control_source is None else {"control_source": args.control_source}
+    configs = ({n: dataclasses.replace(preset_config(n, args.preset, args.epochs), **overrides,
+                                       **(pose_only if n == "pose" else {}))
+                for n in ("pose", "baseline")} if overrides or pose_only else None)
     try:
         result = train(args.data, args.output, net=args.net, preset=args.preset,
                        epochs=args.epochs, device=args.device, seed=args.seed,

@@ -362,7 +362,7 @@ def test_lost_plans_restart_from_the_straight_line():
     """ControlNet reads its fed-back plan, but the straight line where the control just
     switched on or where the plan's present sample is more than ``radius`` from the hand; zero
     for hands without a contact; radius 0 keeps every running plan."""
-    from couch.synthesis.controller import replan_lost
+    from couch.synthesis.plans import replan_lost
 
     k = np.linspace(1.0, 0.0, 7)
     straight = np.zeros((2, 2, 7, 3))

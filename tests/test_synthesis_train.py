@@ -37,6 +37,7 @@ from couch.synthesis.features import LAYOUT, SIT, FeatureStats
 from couch.synthesis.train import (
     _TASKS,
     NETS,
+    TEACHER_ALWAYS,
     WEIGHTED_JOINTS,
     load_trained,
     main,
@@ -278,6 +279,27 @@ def test_closed_loop_epochs_train_and_validate_closed_loop(sim, trained, tmp_pat
     with pytest.raises(ValueError, match="rollout"):
         train([sim], tmp_path / "bad", net="pose", progress=False,
               configs={"pose": dataclasses.replace(cfg, rollout=1)})
+
+
+def test_controlnet_validates_at_the_teacher_probability_training_ends_at(sim, trained,
+                                                                         tmp_path):
+    """Scheduled sampling that ends closed loop validates closed loop from the first epoch;
+    teacher forcing throughout (the ``cpu`` preset's ControlNet) validates teacher-forced, so
+    that ``best.pt`` is picked in the conditions the network was trained for."""
+    scheduled = [float(r["val_p_teacher"]) for r in _log(trained.run_dir / "control" / "log.csv")]
+    assert scheduled == [0.0] * len(scheduled)
+    base = preset_config("control", "ci")
+    assert preset_config("control", "cpu").network["teacher_forcing_until"] == TEACHER_ALWAYS
+    cfg = dataclasses.replace(base, epochs=3, network={
+        **base.network, "teacher_forcing_until": TEACHER_ALWAYS,
+        "teacher_forcing_off_at": TEACHER_ALWAYS})
+    r = train([sim], tmp_path, net="control", progress=False, configs={"control": cfg})
+    rows = _log(r.nets["control"].dir / "log.csv")
+    assert [float(x["train_p_teacher"]) for x in rows] == [1.0] * 3
+    assert [float(x["val_p_teacher"]) for x in rows] == [1.0] * 3
+    # teacher-forced validation reads the data's lines: lower than the closed-loop one
+    assert float(rows[0]["val_loss"]) < float(_log(trained.run_dir / "control" / "log.csv")[0][
+        "val_loss"])
 
 
 def test_hand_weight_weighs_the_wrists_in_the_loss(trained):
