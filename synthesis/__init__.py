@@ -1,6 +1,6 @@
 """Synthesis stage: COUCH's ControlNet, PoseNet and ContactNet, their features and training.
 
-Public API so far (``couch-eval`` and its protocol are still to come):
+Public API (the stage's modules; everything listed is exported here):
 
 - ``features.py``: :class:`FeatureConfig` (the paper's numbers), :func:`sequence_features`
   (J, T, G, I, E, hand local phases, global phase, control signals and every network target of
@@ -17,6 +17,9 @@ Public API so far (``couch-eval`` and its protocol are still to come):
   approach, ControlNet switched on near each contact, series of contacts, batched characters;
   ``method="baseline"`` runs NSM+Control in the same loop), :class:`Scene`,
   :class:`SynthesisResult`, :func:`yaw_transform`.
+- ``plans.py``: :func:`replay_plans` (a trained ControlNet run over a feature cache as the
+  runtime runs it: PoseNet's control input for ``TrainConfig.control_source="controlnet"``),
+  :func:`control_step` (one batched ControlNet frame, the controller's), :func:`replan_lost`.
 - ``sampling.py``: :func:`sample_contacts` (ContactNet samples projected onto the chair).
 - ``foot_lock.py``: :func:`lock_feet` (planted feet held by leg IK after synthesis;
   ``Synthesizer(foot_lock=True)``), :class:`FootLockConfig`, :func:`planted_feet`.
@@ -61,6 +64,7 @@ from couch.synthesis.nets import (
     project_contacts,
     rollout,
 )
+from couch.synthesis.plans import REPLAN_RADIUS, control_step, replan_lost, replay_plans
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.sampling import sample_contacts
 from couch.synthesis.train import (
@@ -76,6 +80,7 @@ __all__ = [
     "LAYOUT",
     "METHODS",
     "PRECISIONS",
+    "REPLAN_RADIUS",
     "ContactNet",
     "ContactNetConfig",
     "ControlNet",
@@ -103,6 +108,7 @@ __all__ = [
     "contact_intervals",
     "contact_precision",
     "control_loss",
+    "control_step",
     "find_sequences",
     "foot_sliding",
     "format_intervals",
@@ -115,6 +121,8 @@ __all__ = [
     "planted_feet",
     "pose_feature_apd",
     "project_contacts",
+    "replan_lost",
+    "replay_plans",
     "rollout",
     "sample_contacts",
     "save_npz",
