@@ -1,6 +1,6 @@
 """Synthesis stage: COUCH's ControlNet, PoseNet and ContactNet, their features and training.
 
-Public API (the stage's modules; everything listed is exported here):
+Public API, by module:
 
 - ``features.py``: :class:`FeatureConfig` (the paper's numbers), :func:`sequence_features`
   (J, T, G, I, E, hand local phases, global phase, control signals and every network target of
