@@ -60,7 +60,7 @@ from couch.synthesis.features import (
 from couch.synthesis.foot_lock import lock_feet
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.nets import first_linear
-from couch.synthesis.plans import REPLAN_RADIUS, control_step, replan_lost
+from couch.synthesis.plans import REPLAN_RADIUS, control_step
 from couch.synthesis.precision import PRECISIONS, Precision, packed_copy
 from couch.synthesis.train import (
     ENCODER_GROUPS,
@@ -505,17 +505,15 @@ class Synthesizer:
         cfg, batch = self.cfg, len(hands)
         net = self.control_net
         assert net is not None
-        fresh = mask & ~s.on
         straight = control_line(hands, np.where(mask[..., None], targets, 0.0), mask, s.root,
                                 cfg.control_samples, self.control_line_end)
-        line = replan_lost(s.line, straight, fresh, mask, self.replan)
-        past = s.hist_hphase[:, s.hist_hphase.shape[1] + self._past_offsets]
-        hphase = np.concatenate([past.transpose(0, 2, 1), s.c_phase], -1)  # (B,2,13)
-        hphase = hphase * mask[..., None]
         if s.lstm is None:
             s.lstm = net.initial_state(batch, self.device)
-        pos, ph, s.lstm = control_step(net, self.control_stats, s.lstm, s.jpos, line, hphase,
-                                       mask, fresh.any(-1) & ~s.on.any(-1), self.device)
+        past = s.hist_hphase[:, s.hist_hphase.shape[1] + self._past_offsets]
+        pos, ph, s.lstm = control_step(
+            net, self.control_stats, s.lstm, s.jpos, straight=straight, plan=s.line,
+            phases=s.c_phase, past_phases=past, on=s.on, mask=mask, replan=self.replan,
+            device=self.device)
         s.line, s.c_phase = pos, ph
         return pos, ph
 

@@ -47,24 +47,34 @@ def replan_lost(fed_back: np.ndarray, straight: np.ndarray, fresh: np.ndarray,
     return np.where((fresh | lost)[..., None, None], straight, fed_back) * mask[..., None, None]
 
 
-def control_step(net: ControlNet, stats: FeatureStats, lstm: LSTMState, jpos: np.ndarray,
-                 line: np.ndarray, hand_phases: np.ndarray, mask: np.ndarray,
-                 restart: np.ndarray, device: torch.device) -> tuple[np.ndarray, np.ndarray,
-                                                                     LSTMState]:
-    """One ControlNet frame for B characters.
+def control_step(net: ControlNet, stats: FeatureStats, lstm: LSTMState, jpos: np.ndarray, *,
+                 straight: np.ndarray, plan: np.ndarray, phases: np.ndarray,
+                 past_phases: np.ndarray, on: np.ndarray, mask: np.ndarray, replan: float,
+                 device: torch.device) -> tuple[np.ndarray, np.ndarray, LSTMState]:
+    """One ControlNet frame for B characters, as the runtime runs it: the control input is the
+    last ``plan`` fed back, or the ``straight`` line where a hand's control just switched on or
+    its plan is lost (:func:`replan_lost`); the hands' local phases are their past ones and the
+    last predicted ones; a character whose control switches on with no hand on before starts
+    from the LSTM's initial state.
 
     Args:
         net, stats: the trained ControlNet and its normalisation.
-        lstm: its state ``(h, c)``, each (layers, B, hidden); characters where ``restart``
-            (B,) bool start from the initial state.
-        jpos: (B,22,3) root-frame joint positions (m); line: (B,2,K,3) the control input h̃;
-        hand_phases: (B,2,13) local phases at the trajectory samples; mask: (B,2) bool,
-            hands whose control is on.
+        lstm: its state ``(h, c)``, each (layers, B, hidden).
+        jpos: (B,22,3) root-frame joint positions (m).
+        straight: (B,2,K,3) the straight line from each hand to its contact; plan: (B,2,K,3)
+            and phases (B,2,K) last frame's prediction.
+        past_phases: (B,P,2) the hands' local phases at the trajectory's P past samples.
+        on: (B,2) bool, hands whose control was on last frame; mask: (B,2) bool, this frame.
+        replan: :func:`replan_lost`'s radius (m).
     Returns:
         the plan C⁺ (B,2,K,3) (zeros where ``mask`` is False), its phases (B,2,K) clipped to
         [0, 1] (zeros likewise), and the new LSTM state.
     """
     batch = len(jpos)
+    fresh = mask & ~on
+    line = replan_lost(plan, straight, fresh, mask, replan)
+    hphase = np.concatenate([past_phases.transpose(0, 2, 1), phases], -1) * mask[..., None]
+    restart = fresh.any(-1) & ~on.any(-1)
     if restart.any():
         h0, c0 = net.initial_state(int(restart.sum()), device)
         idx = torch.as_tensor(np.flatnonzero(restart), device=device)
@@ -74,7 +84,7 @@ def control_step(net: ControlNet, stats: FeatureStats, lstm: LSTMState, jpos: np
         return torch.as_tensor(stats.normalize(g, x.reshape(batch, -1)).astype(np.float32),
                                device=device)
 
-    control = torch.cat([norm("control_line", line), norm("hand_phases", hand_phases)], -1)
+    control = torch.cat([norm("control_line", line), norm("hand_phases", hphase)], -1)
     with torch.no_grad():
         out, lstm = net.step(norm("joint_positions", jpos), control, lstm)
     out = out.cpu().numpy().astype(np.float64)
@@ -118,12 +128,10 @@ def replay_plans(cache: FeatureCache, net: ControlNet, stats: FeatureStats, *,
     plans, plan_phases = np.zeros((n_seq, n_max, 2, k, 3)), np.zeros((n_seq, n_max, 2, k))
     for t in range(n_max):
         mask = mask_all[:, t]
-        fresh = mask & ~on
-        line = replan_lost(plan, line_all[:, t].astype(np.float64), fresh, mask, replan)
-        hphase = np.concatenate([history[:, len(history[0]) + past].transpose(0, 2, 1),
-                                 phases], -1) * mask[..., None]
-        plan, phases, lstm = control_step(net, stats, lstm, jpos_all[:, t], line, hphase, mask,
-                                          fresh.any(-1) & ~on.any(-1), device)
+        plan, phases, lstm = control_step(
+            net, stats, lstm, jpos_all[:, t], straight=line_all[:, t].astype(np.float64),
+            plan=plan, phases=phases, past_phases=history[:, len(history[0]) + past], on=on,
+            mask=mask, replan=replan, device=device)
         history = np.concatenate([history[:, 1:], phases[:, None, :, 0]], 1)
         on = mask
         plans[:, t], plan_phases[:, t] = plan, phases

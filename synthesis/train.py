@@ -962,8 +962,9 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
                                         progress=progress, stop_after=stop_after,
                                         keep_epochs=keep_epochs, extra_meta=plans)
             finally:
-                for g in CONTROL_GROUPS:
-                    cache.restore(g)
+                if plans is not None:  # the networks trained next read the data's
+                    for g in CONTROL_GROUPS:
+                        cache.restore(g)
     finally:
         torch.set_num_threads(old_threads)
     return TrainResult(run, cache.path, cache.hit, list(cache.skipped), results)
