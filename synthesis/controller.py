@@ -76,6 +76,13 @@ __all__ = ["METHODS", "Scene", "SynthesisResult", "Synthesizer", "yaw_transform"
 #: simulated and captured sitters' seat-edge and armrest contacts lie 22-31 cm out).
 HAND_REACH_X = 0.25
 
+#: Forward distance (m) from the hips to a hand resting on the seat ahead of them, and the seat
+#: depth (m) a sitter keeps in front of the hips for the thighs: on a seat deeper than that, the
+#: sit goal moves forward towards a seat contact asked farther ahead (:meth:`Scene.goals`).
+#: Measured on the validation chairs (README, *Results so far*).
+HAND_REACH_Z = 0.10
+SEAT_FRONT_ROOM = 0.22
+
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
 
@@ -107,7 +114,9 @@ class Scene:
     vertices (V,3) / faces (F,3) in the chair frame; world_from_chair (4,4); occupancy (512,)
     and centres_world (512,3) of the 8^3 interaction voxels; grid the fine occupancy for E;
     goal (4,4) the sit goal root (seat centre on the floor, facing the chair's front);
-    seat_half_width (m) half the seat's width along the chair's x (where a sitter may shift to).
+    seat_half_width (m) half the seat's width along the chair's x (where a sitter may shift to);
+    seat_height, seat_front (m) the seat's top and its front edge (chair-frame y and z; NaN
+    without a seat).
     """
 
     name: str
@@ -119,6 +128,8 @@ class Scene:
     grid: OccupancyGrid
     goal: np.ndarray
     seat_half_width: float = 0.0
+    seat_height: float = float("nan")
+    seat_front: float = float("nan")
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, cfg: FeatureConfig,
@@ -133,15 +144,18 @@ class Scene:
         occupancy, centres, _ = voxel_grid(v, f, cfg.interaction_resolution,
                                            cfg.interaction_subsamples)
         grid = OccupancyGrid.from_mesh(v, f, pose, cfg.occupancy_voxel)
-        goal, half = sit_goal(v, f)
+        goal, half, height, front = sit_goal(v, f)
         return cls(name, v, f, pose, occupancy, apply_transform(pose, centres), grid,
-                   pose @ goal, half)
+                   pose @ goal, half, height, front)
 
     def goals(self, series: np.ndarray) -> np.ndarray:
         """(B,4,4) world sit goals for (B,S,2,3) world contact series: the seat goal shifted
         along the seat so that the first set's contacts are where the sitter's hands rest,
         ``HAND_REACH_X`` to either side of the hips (a sofa's sitter sits by the armrest they
-        hold), keeping 25 cm from the seat's ends."""
+        hold), keeping 25 cm from the seat's ends; and forward on a deep seat so that the
+        first set's frontmost seat contact is at most ``HAND_REACH_Z`` ahead of the hips,
+        keeping ``SEAT_FRONT_ROOM`` of seat in front of them (a sofa's sitter reaching for the
+        seat's front corner sits forward)."""
         first = apply_transform(invert_transform(self.world_from_chair),
                                 np.asarray(series, np.float64)[:, 0])  # (B,2,3) chair frame
         finite = np.isfinite(first[..., 0])
@@ -154,16 +168,25 @@ class Scene:
         shift = np.clip(want - goal_chair[0, 3], -room, room)
         out = np.repeat(goal_chair[None], len(first), 0)
         out[:, 0, 3] += shift
+        if np.isfinite(self.seat_front):
+            # the goal faces +z in the chair frame; contacts within 5 cm of the seat's height
+            # are on the seat
+            on_seat = finite & (np.abs(np.nan_to_num(first[..., 1]) - self.seat_height) < 0.05)
+            ahead = np.where(on_seat, first[..., 2], -np.inf).max(-1) - goal_chair[2, 3]
+            room_z = max(self.seat_front - SEAT_FRONT_ROOM - goal_chair[2, 3], 0.0)
+            out[:, 2, 3] += np.clip(ahead - HAND_REACH_Z, 0.0, room_z)
         return self.world_from_chair @ out
 
 
-def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
+def sit_goal(vertices: np.ndarray, faces: np.ndarray
+             ) -> tuple[np.ndarray, float, float, float]:
     """Chair-frame sit goal: (4,4) root pose at the seat's centre (:func:`couch.augment.
-    segment_parts`) on the floor, facing +Z, and the seat's half width along x (m). Falls back
-    to the origin and 0 if no seat is found."""
+    segment_parts`) on the floor, facing +Z; the seat's half width along x, its top's height
+    (y) and its front edge (z), all m. Falls back to the origin, 0, NaN, NaN if no seat is
+    found."""
     from couch.augment import segment_parts  # heavy (trimesh, open3d); only needed here
 
-    centre, half = np.zeros(3), 0.0
+    centre, half, height, front = np.zeros(3), 0.0, float("nan"), float("nan")
     try:
         parts = segment_parts(vertices, faces)
         if parts.has("seat"):
@@ -171,9 +194,12 @@ def sit_goal(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float
             centre = seat.centre
             half = float(seat.half_extents[0] * abs(seat.u[0])
                          + seat.half_extents[1] * abs(seat.v[0]))
+            height = float(centre[1])
+            front = float(centre[2] + seat.half_extents[0] * abs(seat.u[2])
+                          + seat.half_extents[1] * abs(seat.v[2]))
     except ValueError:
         pass
-    return yaw_transform(centre[0], centre[2], 0.0), half
+    return yaw_transform(centre[0], centre[2], 0.0), half, height, front
 
 
 def walk_when_far(future: np.ndarray, root: np.ndarray, goal: np.ndarray, radius: float

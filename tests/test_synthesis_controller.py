@@ -259,6 +259,33 @@ def test_sofa_goal_moves_towards_the_held_armrest(synth):
     assert abs(goals[2, 0, 3] - sofa.goal[0, 3]) < 0.05  # both armrests: the middle
 
 
+def test_sit_goal_moves_forward_on_a_deep_seat_for_a_seat_contact():
+    """A hand asked on a deep seat's front corner moves the sit goal forward, keeping
+    SEAT_FRONT_ROOM of seat in front of the hips; an armrest contact or a shallow seat does
+    not."""
+    from couch.synthesis import FeatureConfig
+    from couch.synthesis.controller import HAND_REACH_Z, SEAT_FRONT_ROOM
+    from couch.synthesis.evaluation import contact_candidates
+
+    nan = np.full(3, np.nan)
+    c = make_chair(random_chair_spec(np.random.default_rng(5), "sofa"))
+    sofa = Scene.from_mesh(c.vertices, c.faces, FeatureConfig(), name="sofa")
+    corner = contact_candidates(c.vertices, c.faces)["left"]["seat"][0]
+    arm = np.asarray(c.landmarks.left_armrest)
+    assert abs(sofa.seat_height - corner[1]) < 1e-6 and sofa.seat_front > corner[2]
+    room = sofa.seat_front - SEAT_FRONT_ROOM - sofa.goal[2, 3]
+    assert 0.0 < room < corner[2] - sofa.goal[2, 3] - HAND_REACH_Z  # the room is what binds
+    goals = sofa.goals(np.array([[[corner, nan]], [[arm, nan]], [[nan, nan]]]))
+    assert goals[0, 2, 3] == pytest.approx(sofa.seat_front - SEAT_FRONT_ROOM)
+    assert goals[1, 2, 3] == pytest.approx(sofa.goal[2, 3])  # an armrest: not forward
+    assert goals[2, 2, 3] == pytest.approx(sofa.goal[2, 3])  # no contact: the seat centre
+    s = make_chair(random_chair_spec(np.random.default_rng(5), "straight"))
+    straight = Scene.from_mesh(s.vertices, s.faces, FeatureConfig(), name="straight")
+    corner = contact_candidates(s.vertices, s.faces)["right"]["seat"][0]
+    assert straight.goals(np.array([[[nan, corner]]]))[0, 2, 3] == pytest.approx(
+        straight.goal[2, 3])  # under SEAT_FRONT_ROOM deep: stays
+
+
 def test_runtime_features_match_training_features(synth, motion_sim):
     """The controller's J, T, G, I, E for a recorded state equal sequence_features' rows."""
     from couch.synthesis.controller import _State
