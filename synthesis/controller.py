@@ -79,9 +79,13 @@ HAND_REACH_X = 0.25
 #: Forward distance (m) from the hips to a hand resting on the seat ahead of them, and the seat
 #: depth (m) a sitter keeps in front of the hips for the thighs: on a seat deeper than that, the
 #: sit goal moves forward towards a seat contact asked farther ahead (:meth:`Scene.goals`).
-#: Measured on the validation chairs (README, *Results so far*).
+#: An armrest hand rests at least ``ARMREST_REACH_Z`` ahead of the hips: for one asked farther
+#: back the goal moves back, keeping ``SEAT_BACK_ROOM`` of seat behind the hips. Chosen on the
+#: validation chairs (README, *Results so far*).
 HAND_REACH_Z = 0.10
 SEAT_FRONT_ROOM = 0.22
+ARMREST_REACH_Z = 0.05
+SEAT_BACK_ROOM = 0.20
 
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
@@ -115,8 +119,8 @@ class Scene:
     and centres_world (512,3) of the 8^3 interaction voxels; grid the fine occupancy for E;
     goal (4,4) the sit goal root (seat centre on the floor, facing the chair's front);
     seat_half_width (m) half the seat's width along the chair's x (where a sitter may shift to);
-    seat_height, seat_front (m) the seat's top and its front edge (chair-frame y and z; NaN
-    without a seat).
+    seat_height, seat_front, seat_back (m) the seat's top, its front and its rear edge
+    (chair-frame y, z and z; NaN without a seat).
     """
 
     name: str
@@ -130,6 +134,7 @@ class Scene:
     seat_half_width: float = 0.0
     seat_height: float = float("nan")
     seat_front: float = float("nan")
+    seat_back: float = float("nan")
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, faces: np.ndarray, cfg: FeatureConfig,
@@ -144,9 +149,9 @@ class Scene:
         occupancy, centres, _ = voxel_grid(v, f, cfg.interaction_resolution,
                                            cfg.interaction_subsamples)
         grid = OccupancyGrid.from_mesh(v, f, pose, cfg.occupancy_voxel)
-        goal, half, height, front = sit_goal(v, f)
+        goal, half, height, front, back = sit_goal(v, f)
         return cls(name, v, f, pose, occupancy, apply_transform(pose, centres), grid,
-                   pose @ goal, half, height, front)
+                   pose @ goal, half, height, front, back)
 
     def goals(self, series: np.ndarray) -> np.ndarray:
         """(B,4,4) world sit goals for (B,S,2,3) world contact series: the seat goal shifted
@@ -155,7 +160,10 @@ class Scene:
         hold), keeping 25 cm from the seat's ends; and forward on a deep seat so that the
         first set's frontmost seat contact is at most ``HAND_REACH_Z`` ahead of the hips,
         keeping ``SEAT_FRONT_ROOM`` of seat in front of them (a sofa's sitter reaching for the
-        seat's front corner sits forward)."""
+        seat's front corner sits forward); then back so that its rearmost armrest contact (5 cm
+        or more above the seat) is at least ``ARMREST_REACH_Z`` ahead of the hips, keeping
+        ``SEAT_BACK_ROOM`` of seat behind them (a hand on an armrest's middle rests beside a
+        sitter sat back)."""
         first = apply_transform(invert_transform(self.world_from_chair),
                                 np.asarray(series, np.float64)[:, 0])  # (B,2,3) chair frame
         finite = np.isfinite(first[..., 0])
@@ -175,18 +183,23 @@ class Scene:
             ahead = np.where(on_seat, first[..., 2], -np.inf).max(-1) - goal_chair[2, 3]
             room_z = max(self.seat_front - SEAT_FRONT_ROOM - goal_chair[2, 3], 0.0)
             out[:, 2, 3] += np.clip(ahead - HAND_REACH_Z, 0.0, room_z)
+            above = finite & (np.nan_to_num(first[..., 1]) - self.seat_height >= 0.05)
+            behind = np.where(above, first[..., 2], np.inf).min(-1) - out[:, 2, 3]
+            back_z = np.minimum(self.seat_back + SEAT_BACK_ROOM - out[:, 2, 3], 0.0)
+            out[:, 2, 3] += np.clip(behind - ARMREST_REACH_Z, back_z, 0.0)
         return self.world_from_chair @ out
 
 
 def sit_goal(vertices: np.ndarray, faces: np.ndarray
-             ) -> tuple[np.ndarray, float, float, float]:
+             ) -> tuple[np.ndarray, float, float, float, float]:
     """Chair-frame sit goal: (4,4) root pose at the seat's centre (:func:`couch.augment.
     segment_parts`) on the floor, facing +Z; the seat's half width along x, its top's height
-    (y) and its front edge (z), all m. Falls back to the origin, 0, NaN, NaN if no seat is
-    found."""
+    (y), its front edge and its rear edge (z), all m. Falls back to the origin, 0 and NaNs if
+    no seat is found."""
     from couch.augment import segment_parts  # heavy (trimesh, open3d); only needed here
 
-    centre, half, height, front = np.zeros(3), 0.0, float("nan"), float("nan")
+    centre, half = np.zeros(3), 0.0
+    height = front = back = float("nan")
     try:
         parts = segment_parts(vertices, faces)
         if parts.has("seat"):
@@ -195,11 +208,12 @@ def sit_goal(vertices: np.ndarray, faces: np.ndarray
             half = float(seat.half_extents[0] * abs(seat.u[0])
                          + seat.half_extents[1] * abs(seat.v[0]))
             height = float(centre[1])
-            front = float(centre[2] + seat.half_extents[0] * abs(seat.u[2])
+            depth = float(seat.half_extents[0] * abs(seat.u[2])
                           + seat.half_extents[1] * abs(seat.v[2]))
+            front, back = float(centre[2] + depth), float(centre[2] - depth)
     except ValueError:
         pass
-    return yaw_transform(centre[0], centre[2], 0.0), half, height, front
+    return yaw_transform(centre[0], centre[2], 0.0), half, height, front, back
 
 
 def walk_when_far(future: np.ndarray, root: np.ndarray, goal: np.ndarray, radius: float

@@ -259,12 +259,17 @@ def test_sofa_goal_moves_towards_the_held_armrest(synth):
     assert abs(goals[2, 0, 3] - sofa.goal[0, 3]) < 0.05  # both armrests: the middle
 
 
-def test_sit_goal_moves_forward_on_a_deep_seat_for_a_seat_contact():
+def test_sit_goal_moves_along_a_deep_seat_towards_its_contact():
     """A hand asked on a deep seat's front corner moves the sit goal forward, keeping
-    SEAT_FRONT_ROOM of seat in front of the hips; an armrest contact or a shallow seat does
-    not."""
+    SEAT_FRONT_ROOM of seat in front of the hips (an armrest contact ahead or a shallow seat
+    does not); an armrest contact behind the hips moves it back, keeping SEAT_BACK_ROOM."""
     from couch.synthesis import FeatureConfig
-    from couch.synthesis.controller import HAND_REACH_Z, SEAT_FRONT_ROOM
+    from couch.synthesis.controller import (
+        ARMREST_REACH_Z,
+        HAND_REACH_Z,
+        SEAT_BACK_ROOM,
+        SEAT_FRONT_ROOM,
+    )
     from couch.synthesis.evaluation import contact_candidates
 
     nan = np.full(3, np.nan)
@@ -275,10 +280,16 @@ def test_sit_goal_moves_forward_on_a_deep_seat_for_a_seat_contact():
     assert abs(sofa.seat_height - corner[1]) < 1e-6 and sofa.seat_front > corner[2]
     room = sofa.seat_front - SEAT_FRONT_ROOM - sofa.goal[2, 3]
     assert 0.0 < room < corner[2] - sofa.goal[2, 3] - HAND_REACH_Z  # the room is what binds
-    goals = sofa.goals(np.array([[[corner, nan]], [[arm, nan]], [[nan, nan]]]))
+    front_arm = arm + np.array([0.0, 0.0, 0.3])  # well ahead of the hips
+    goals = sofa.goals(np.array([[[corner, nan]], [[front_arm, nan]], [[nan, nan]]]))
     assert goals[0, 2, 3] == pytest.approx(sofa.seat_front - SEAT_FRONT_ROOM)
     assert goals[1, 2, 3] == pytest.approx(sofa.goal[2, 3])  # an armrest: not forward
     assert goals[2, 2, 3] == pytest.approx(sofa.goal[2, 3])  # no contact: the seat centre
+    # an armrest contact behind the hips moves them back, at most to SEAT_BACK_ROOM
+    near, far = (arm * [1, 1, 0] + [0.0, 0.0, sofa.goal[2, 3] + dz] for dz in (-0.02, -0.5))
+    back = sofa.goals(np.array([[[near, nan]], [[far, nan]]]))
+    assert back[0, 2, 3] == pytest.approx(near[2] - ARMREST_REACH_Z)
+    assert back[1, 2, 3] == pytest.approx(sofa.seat_back + SEAT_BACK_ROOM)
     s = make_chair(random_chair_spec(np.random.default_rng(5), "straight"))
     straight = Scene.from_mesh(s.vertices, s.faces, FeatureConfig(), name="straight")
     corner = contact_candidates(s.vertices, s.faces)["right"]["seat"][0]
