@@ -86,6 +86,9 @@ HAND_REACH_Z = 0.10
 SEAT_FRONT_ROOM = 0.22
 ARMREST_REACH_Z = 0.05
 SEAT_BACK_ROOM = 0.20
+#: A contact within this many metres of the seat's height is on the seat; one higher, on an
+#: armrest (:meth:`Scene.goals`).
+SEAT_CONTACT_BAND = 0.05
 
 #: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
 METHODS: tuple[str, ...] = ("couch", "baseline")
@@ -160,10 +163,10 @@ class Scene:
         hold), keeping 25 cm from the seat's ends; and forward on a deep seat so that the
         first set's frontmost seat contact is at most ``HAND_REACH_Z`` ahead of the hips,
         keeping ``SEAT_FRONT_ROOM`` of seat in front of them (a sofa's sitter reaching for the
-        seat's front corner sits forward); then back so that its rearmost armrest contact (5 cm
-        or more above the seat) is at least ``ARMREST_REACH_Z`` ahead of the hips, keeping
-        ``SEAT_BACK_ROOM`` of seat behind them (a hand on an armrest's middle rests beside a
-        sitter sat back)."""
+        seat's front corner sits forward); then back so that its rearmost armrest contact
+        (``SEAT_CONTACT_BAND`` or more above the seat) is at least ``ARMREST_REACH_Z`` ahead
+        of the hips, keeping ``SEAT_BACK_ROOM`` of seat behind them (a hand on an armrest's
+        middle rests beside a sitter sat back)."""
         first = apply_transform(invert_transform(self.world_from_chair),
                                 np.asarray(series, np.float64)[:, 0])  # (B,2,3) chair frame
         finite = np.isfinite(first[..., 0])
@@ -177,13 +180,13 @@ class Scene:
         out = np.repeat(goal_chair[None], len(first), 0)
         out[:, 0, 3] += shift
         if np.isfinite(self.seat_front):
-            # the goal faces +z in the chair frame; contacts within 5 cm of the seat's height
-            # are on the seat
-            on_seat = finite & (np.abs(np.nan_to_num(first[..., 1]) - self.seat_height) < 0.05)
+            # the goal faces +z in the chair frame
+            rise = np.nan_to_num(first[..., 1]) - self.seat_height
+            on_seat = finite & (np.abs(rise) < SEAT_CONTACT_BAND)
             ahead = np.where(on_seat, first[..., 2], -np.inf).max(-1) - goal_chair[2, 3]
             room_z = max(self.seat_front - SEAT_FRONT_ROOM - goal_chair[2, 3], 0.0)
             out[:, 2, 3] += np.clip(ahead - HAND_REACH_Z, 0.0, room_z)
-            above = finite & (np.nan_to_num(first[..., 1]) - self.seat_height >= 0.05)
+            above = finite & (rise >= SEAT_CONTACT_BAND)
             behind = np.where(above, first[..., 2], np.inf).min(-1) - out[:, 2, 3]
             back_z = np.minimum(self.seat_back + SEAT_BACK_ROOM - out[:, 2, 3], 0.0)
             out[:, 2, 3] += np.clip(behind - ARMREST_REACH_Z, back_z, 0.0)
