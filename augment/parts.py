@@ -100,6 +100,10 @@ class PartFrame:
         axes = np.stack([self.u, self.v, self.normal])            # (3, 3)
         return (d @ axes.T) / np.array([*self.half_extents, 1.0])
 
+    def half_span(self) -> np.ndarray:
+        """(3,) half sizes (m) of the box's extent along the chair frame's x, y and z."""
+        return np.abs(self.u) * self.half_extents[0] + np.abs(self.v) * self.half_extents[1]
+
     def to_world(self, local: np.ndarray) -> np.ndarray:
         """(N, 3) local ``(a, b, w)`` → (N, 3) chair-frame points (inverse of :meth:`to_local`)."""
         scaled = np.asarray(local, dtype=np.float64) * np.array([*self.half_extents, 1.0])

@@ -208,12 +208,9 @@ def sit_goal(vertices: np.ndarray, faces: np.ndarray
         if parts.has("seat"):
             seat = parts.frames["seat"]
             centre = seat.centre
-            half = float(seat.half_extents[0] * abs(seat.u[0])
-                         + seat.half_extents[1] * abs(seat.v[0]))
-            height = float(centre[1])
-            depth = float(seat.half_extents[0] * abs(seat.u[2])
-                          + seat.half_extents[1] * abs(seat.v[2]))
-            front, back = float(centre[2] + depth), float(centre[2] - depth)
+            span = seat.half_span()
+            half, height = float(span[0]), float(centre[1])
+            front, back = float(centre[2] + span[2]), float(centre[2] - span[2])
     except ValueError:
         pass
     return yaw_transform(centre[0], centre[2], 0.0), half, height, front, back

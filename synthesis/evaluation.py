@@ -94,8 +94,7 @@ def contact_candidates(vertices: np.ndarray, faces: np.ndarray
             out[side]["armrest"] = [arm.centre, arm.to_world(np.array([[0.0, 0.6, 0.0]]))[0]]
         seat = parts.frames.get("seat")
         if seat is not None:
-            half_x = abs(seat.u[0]) * seat.half_extents[0] + abs(seat.v[0]) * seat.half_extents[1]
-            half_z = abs(seat.u[2]) * seat.half_extents[0] + abs(seat.v[2]) * seat.half_extents[1]
+            half_x, _, half_z = seat.half_span()
             corner = seat.centre.copy()
             corner[0] += sign * min(0.85 * half_x, HAND_REACH_X)
             corner[2] += max(half_z - 0.05, 0.0)
