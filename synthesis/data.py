@@ -250,6 +250,7 @@ class FeatureCache:
                               for k in self.sequence_groups})
         self.hit = False
         self._data: dict[str, np.ndarray] = {}
+        self._replaced: set[str] = set()
         self.row_sequence = np.repeat(np.arange(self.num_sequences), np.diff(self.offsets))
 
     @property
@@ -290,10 +291,20 @@ class FeatureCache:
                              f"{values.shape}: expected a per-row group of shape "
                              f"({self.num_rows}, {self.dims.get(name, '?')})")
         self._data[name] = values
+        self._replaced.add(name)
 
     def restore(self, name: str) -> None:
         """Undo :meth:`replace`: ``name`` is read from the file again on its next use."""
         self._data.pop(name, None)
+        self._replaced.discard(name)
+
+    def release(self, names: Iterable[str]) -> None:
+        """Forget the in-memory copies of groups read from the file (a later use reads them
+        again); groups given by :meth:`replace` are kept. PoseNet's groups are ~4,800 floats a
+        row, so a cache of 300k rows holds ~6 GB once its datasets have copied them."""
+        for name in names:
+            if name not in self._replaced:
+                self._data.pop(name, None)
 
     def rows(self, name: str, indices: np.ndarray) -> np.ndarray:
         """(len(indices), dim) float32 values of ``name`` at the given global rows (a
@@ -544,6 +555,33 @@ class FrameDataset(torch.utils.data.Dataset):
         # Copy the needed rows once (normalised), so batches are plain slices of numpy arrays.
         self.inputs = {g: _normalized(cache, g, self.indices, stats) for g in groups_in}
         self.targets = {g: _normalized(cache, g, self.indices, stats) for g in groups_out}
+
+    @classmethod
+    def splits(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
+               index_sets: Sequence[np.ndarray], stats: FeatureStats | None = None
+               ) -> list[FrameDataset]:
+        """One dataset per set of rows (e.g. training and validation), the same as
+        ``FrameDataset(cache, groups_in, groups_out, rows, stats)`` for each, built group by
+        group: once every set has copied a group's rows the cache forgets the group
+        (:meth:`FeatureCache.release`), so memory holds the datasets' copies and one group at
+        a time, not the copies and the whole cache side by side."""
+        out = []
+        for rows in index_sets:
+            ds = cls.__new__(cls)
+            ds.indices, ds.inputs, ds.targets = np.asarray(rows, dtype=np.int64), {}, {}
+            out.append(ds)
+        for g in dict.fromkeys([*groups_in, *groups_out]):
+            for ds in out:
+                x = _normalized(cache, g, ds.indices, stats)
+                if g in groups_in:
+                    ds.inputs[g] = x
+                if g in groups_out:  # shared with inputs when in both: batches copy rows
+                    ds.targets[g] = x
+            cache.release([g])
+        for ds in out:
+            ds.inputs = {g: ds.inputs[g] for g in groups_in}
+            ds.targets = {g: ds.targets[g] for g in groups_out}
+        return out
 
     def __len__(self) -> int:
         return len(self.indices)

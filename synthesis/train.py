@@ -421,9 +421,9 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     gating = {g: d[g] for g in GATING_GROUPS[cfg.net]}
     out_dim = sum(d[g] for g in groups_out)
     model = PoseNet(inputs, gating, out_dim, ncfg)
-    train_ds = FrameDataset(cache, groups_in, groups_out, cache.sequence_rows(train), stats)
-    val_ds: torch.utils.data.Dataset = FrameDataset(cache, groups_in, groups_out,
-                                                    cache.sequence_rows(val), stats)
+    train_ds, val_ds = FrameDataset.splits(
+        cache, groups_in, groups_out, [cache.sequence_rows(train), cache.sequence_rows(val)],
+        stats)
     widths = [d[g] for g in groups_out]
     rollout_ds = None
     if cfg.rollout_epochs > 0:

@@ -135,6 +135,41 @@ def test_resume_continues_and_reproduces(sim, trained, tmp_path):
         train([sim], tmp_path, net="pose", preset="ci", progress=False)
 
 
+def test_frame_dataset_splits_match_one_by_one_and_free_the_cache(trained):
+    """Training's datasets built group by group (``FrameDataset.splits``) hold what one
+    FrameDataset per row set holds, and leave the cache without the groups it read from its
+    file; a group given by ``replace`` stays."""
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, val_seqs = split(cache)
+    sets = [cache.sequence_rows(train_seqs), cache.sequence_rows(val_seqs)]
+    _, stats, meta = load_trained(trained.run_dir, "pose", which="last")
+    groups_in, groups_out = meta["groups_in"], meta["groups_out"]
+    one = [FrameDataset(cache, groups_in, groups_out, rows, stats) for rows in sets]
+    assert {"joint_positions", "control_phases"} <= set(cache._data)
+    replaced = cache.group("control_phases") + 1.0
+    cache.replace("control_phases", replaced)
+    both = FrameDataset.splits(cache, groups_in, groups_out, sets, stats)
+    assert "joint_positions" not in cache._data  # read again from the file on its next use
+    assert cache.group("control_phases") is replaced
+    for a, b in zip(one, both, strict=True):
+        assert list(b.inputs) == list(a.inputs) and list(b.targets) == list(a.targets)
+        np.testing.assert_array_equal(b.indices, a.indices)
+        for g in a.inputs:
+            expect = (_normalized_rows(cache, g, a.indices, stats) if g == "control_phases"
+                      else a.inputs[g])
+            np.testing.assert_array_equal(b.inputs[g], expect)
+        for g in a.targets:
+            np.testing.assert_array_equal(b.targets[g], a.targets[g])
+    cache.restore("control_phases")
+    np.testing.assert_array_equal(
+        FrameDataset.splits(cache, groups_in, groups_out, sets[:1], stats)[0].inputs[
+            "control_phases"], one[0].inputs["control_phases"])
+
+
+def _normalized_rows(cache, name, rows, stats):
+    return stats.normalize(name, cache.rows(name, rows)).astype(np.float32)
+
+
 def test_load_trained_matches_the_trained_model(trained):
     cache = FeatureCache(trained.cache_path)
     train_seqs, _ = split(cache)
