@@ -612,6 +612,10 @@ class WindowDataset(torch.utils.data.Dataset):
         sequences: sequence indices to draw from (default all).
         groups: groups to serve (default the ControlNet's inputs, targets and pose).
         stats: optional normalisation.
+        rows: the groups already normalised over ``cache.sequence_rows(sequences)``, in that
+            order (e.g. a :class:`FrameDataset`'s inputs and targets over the same rows): used
+            as they are, not copied, so PoseNet's closed-loop windows share its training
+            rows' memory. None: copied from the cache.
     """
 
     DEFAULT_GROUPS = ("joint_positions", "control_line", "hand_phases",
@@ -619,7 +623,8 @@ class WindowDataset(torch.utils.data.Dataset):
 
     def __init__(self, cache: FeatureCache, window: int = 60, stride: int | None = None,
                  sequences: Iterable[int] | None = None, groups: Sequence[str] | None = None,
-                 stats: FeatureStats | None = None) -> None:
+                 stats: FeatureStats | None = None,
+                 rows: Mapping[str, np.ndarray] | None = None) -> None:
         if window < 1:
             raise ValueError(f"window must be positive, got {window}")
         stride = stride or max(1, window // 2)
@@ -638,11 +643,19 @@ class WindowDataset(torch.utils.data.Dataset):
                 first.append(hi - window)
             starts.extend(first)
         self.starts = np.asarray(starts, dtype=np.int64)
+        given = rows
         rows = cache.sequence_rows(seqs)
         # Keep the selected sequences' rows (normalised) and map global rows into them.
         self._local = np.full(cache.num_rows + 1, -1, dtype=np.int64)
         self._local[rows] = np.arange(len(rows))
-        self.data = {g: _normalized(cache, g, rows, stats) for g in groups}
+        if given is None:
+            self.data = {g: _normalized(cache, g, rows, stats) for g in groups}
+        else:
+            bad = [g for g in groups if g not in given or len(given[g]) != len(rows)]
+            if bad:
+                raise ValueError(f"WindowDataset: rows given for {sorted(given)} do not cover "
+                                 f"{bad} over the sequences' {len(rows)} rows")
+            self.data = {g: given[g] for g in groups}
 
     def __len__(self) -> int:
         return len(self.starts)

@@ -431,12 +431,15 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
             raise ValueError(f"rollout_epochs {cfg.rollout_epochs} needs rollout windows of at "
                              f"least 2 frames, got rollout={cfg.rollout}")
         groups = groups_in + groups_out
+        # the windows read the frame datasets' rows (the same rows, normalised alike)
         rollout_ds = WindowDataset(cache, cfg.rollout, max(1, cfg.rollout // 2), train,
-                                   groups=groups, stats=stats)
+                                   groups=groups, stats=stats,
+                                   rows={**train_ds.inputs, **train_ds.targets})
         if len(rollout_ds) == 0:
             raise ValueError(f"{cache.path}: no training sequence has {cfg.rollout} frames for "
                              "PoseNet's closed-loop windows (rollout)")
-        val_ds = WindowDataset(cache, cfg.rollout, cfg.rollout, val, groups=groups, stats=stats)
+        val_ds = WindowDataset(cache, cfg.rollout, cfg.rollout, val, groups=groups, stats=stats,
+                               rows={**val_ds.inputs, **val_ds.targets})
     feedback = pose_feedback(groups_out, widths, stats)
     if cfg.hand_weight <= 0:
         raise ValueError(f"hand_weight must be positive, got {cfg.hand_weight}")

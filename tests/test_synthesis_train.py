@@ -161,9 +161,21 @@ def test_frame_dataset_splits_match_one_by_one_and_free_the_cache(trained):
         for g in a.targets:
             np.testing.assert_array_equal(b.targets[g], a.targets[g])
     cache.restore("control_phases")
-    np.testing.assert_array_equal(
-        FrameDataset.splits(cache, groups_in, groups_out, sets[:1], stats)[0].inputs[
-            "control_phases"], one[0].inputs["control_phases"])
+    train_ds = FrameDataset.splits(cache, groups_in, groups_out, sets[:1], stats)[0]
+    np.testing.assert_array_equal(train_ds.inputs["control_phases"],
+                                  one[0].inputs["control_phases"])
+    # PoseNet's closed-loop windows over the same rows share the frame dataset's arrays
+    groups = groups_in + groups_out
+    copied = WindowDataset(cache, 4, 2, train_seqs, groups=groups, stats=stats)
+    shared = WindowDataset(cache, 4, 2, train_seqs, groups=groups, stats=stats,
+                           rows={**train_ds.inputs, **train_ds.targets})
+    assert shared.data["joint_positions"] is train_ds.inputs["joint_positions"]
+    w = [0, len(copied) // 2, len(copied) - 1]
+    for g, x in copied.__getitems__(w).items():
+        assert torch.equal(shared.__getitems__(w)[g], x)
+    with pytest.raises(ValueError, match="do not cover"):
+        WindowDataset(cache, 4, 2, val_seqs, groups=groups, stats=stats,
+                      rows={**train_ds.inputs, **train_ds.targets})
 
 
 def _normalized_rows(cache, name, rows, stats):
