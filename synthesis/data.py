@@ -300,8 +300,8 @@ class FeatureCache:
 
     def release(self, names: Iterable[str]) -> None:
         """Forget the in-memory copies of groups read from the file (a later use reads them
-        again); groups given by :meth:`replace` are kept. PoseNet's groups are ~4,800 floats a
-        row, so a cache of 300k rows holds ~6 GB once its datasets have copied them."""
+        again); groups given by :meth:`replace` are kept. PoseNet's groups are ~4,600 floats a
+        row, so a cache of 300k rows holds ~5 GB once its datasets have copied them."""
         for name in names:
             if name not in self._replaced:
                 self._data.pop(name, None)
@@ -643,19 +643,18 @@ class WindowDataset(torch.utils.data.Dataset):
                 first.append(hi - window)
             starts.extend(first)
         self.starts = np.asarray(starts, dtype=np.int64)
-        given = rows
-        rows = cache.sequence_rows(seqs)
+        selected = cache.sequence_rows(seqs)
         # Keep the selected sequences' rows (normalised) and map global rows into them.
         self._local = np.full(cache.num_rows + 1, -1, dtype=np.int64)
-        self._local[rows] = np.arange(len(rows))
-        if given is None:
-            self.data = {g: _normalized(cache, g, rows, stats) for g in groups}
+        self._local[selected] = np.arange(len(selected))
+        if rows is None:
+            self.data = {g: _normalized(cache, g, selected, stats) for g in groups}
         else:
-            bad = [g for g in groups if g not in given or len(given[g]) != len(rows)]
+            bad = [g for g in groups if g not in rows or len(rows[g]) != len(selected)]
             if bad:
-                raise ValueError(f"WindowDataset: rows given for {sorted(given)} do not cover "
-                                 f"{bad} over the sequences' {len(rows)} rows")
-            self.data = {g: given[g] for g in groups}
+                raise ValueError(f"WindowDataset: rows given for {sorted(rows)} do not cover "
+                                 f"{bad} over the sequences' {len(selected)} rows")
+            self.data = {g: rows[g] for g in groups}
 
     def __len__(self) -> int:
         return len(self.starts)

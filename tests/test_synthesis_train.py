@@ -25,6 +25,7 @@ from couch.synthesis.data import (
     FeatureCache,
     FrameDataset,
     WindowDataset,
+    _normalized,
     build_cache,
     chair_ids,
     collate_batch,
@@ -155,7 +156,7 @@ def test_frame_dataset_splits_match_one_by_one_and_free_the_cache(trained):
         assert list(b.inputs) == list(a.inputs) and list(b.targets) == list(a.targets)
         np.testing.assert_array_equal(b.indices, a.indices)
         for g in a.inputs:
-            expect = (_normalized_rows(cache, g, a.indices, stats) if g == "control_phases"
+            expect = (_normalized(cache, g, a.indices, stats) if g == "control_phases"
                       else a.inputs[g])
             np.testing.assert_array_equal(b.inputs[g], expect)
         for g in a.targets:
@@ -176,10 +177,6 @@ def test_frame_dataset_splits_match_one_by_one_and_free_the_cache(trained):
     with pytest.raises(ValueError, match="do not cover"):
         WindowDataset(cache, 4, 2, val_seqs, groups=groups, stats=stats,
                       rows={**train_ds.inputs, **train_ds.targets})
-
-
-def _normalized_rows(cache, name, rows, stats):
-    return stats.normalize(name, cache.rows(name, rows)).astype(np.float32)
 
 
 def test_load_trained_matches_the_trained_model(trained):
