@@ -73,6 +73,7 @@ from couch.synthesis.train import (
     Which,
     load_trained,
     parse_which,
+    preset_config,
     train,
 )
 
@@ -120,6 +121,7 @@ __all__ = [
     "penetration",
     "planted_feet",
     "pose_feature_apd",
+    "preset_config",
     "project_contacts",
     "replan_lost",
     "replay_plans",

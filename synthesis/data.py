@@ -13,7 +13,10 @@ Pipeline (``couch-train`` drives it through :mod:`couch.synthesis.train`):
 4. :class:`FrameDataset` (PoseNet, baseline, ContactNet rows) and :class:`WindowDataset`
    (ControlNet windows inside one sequence) serve batches from memory. Both implement
    ``__getitems__`` so a ``DataLoader`` slices whole batches out of numpy arrays instead of
-   collating rows one by one; use them with ``collate_fn=`` :func:`collate_batch`.
+   collating rows one by one; use them with ``collate_fn=`` :func:`collate_batch`. Built
+   streamed (:meth:`FrameDataset.streamed`, ``WindowDataset(stream=True)``) they copy
+   nothing and read rows from ``features.h5`` a block of whole sequences at a time, served
+   by a :class:`BlockLoader` (:func:`make_loader` picks the loader).
 
 Cache layout (``features.h5``): one dataset per feature group, (N_total, dim) float32, the rows
 of all sequences one after the other (row t of a sequence = its t -> t+1 pair, see
@@ -31,7 +34,7 @@ import dataclasses
 import hashlib
 import json
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +57,7 @@ from couch.synthesis.features import (
 __all__ = [
     "CACHE_FORMAT",
     "PER_SEQUENCE_GROUPS",
+    "BlockLoader",
     "FeatureCache",
     "FrameDataset",
     "SequenceRef",
@@ -67,6 +71,7 @@ __all__ = [
     "find_sequences",
     "fit_stats",
     "load_sequence",
+    "make_loader",
     "source_hash",
     "split",
     "stack_groups",
@@ -314,6 +319,41 @@ class FeatureCache:
             return data[self.row_sequence[indices]]
         return data[indices]
 
+    def read(self, names: Iterable[str], indices: np.ndarray) -> dict[str, np.ndarray]:
+        """Like :meth:`rows` for several groups, without keeping a group in memory: a group
+        already held (read or replaced) is indexed there, any other is read from the file,
+        one slice per run of consecutive rows (a sequence's rows are one run). What a
+        streamed dataset (:class:`BlockLoader`) and :func:`fit_stats` read through.
+
+        Returns group -> (len(indices), dim) float32.
+        """
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        names = list(dict.fromkeys(names))
+        out = {n: self.rows(n, indices) for n in names if n in self._data}
+        todo = [n for n in names if n not in out]
+        for n in todo:
+            if n not in self.dims:
+                raise KeyError(f"{self.path}: no feature group {n!r}; has {sorted(self.dims)}")
+        if not todo:
+            return out
+        # runs of consecutive rows: [starts[k], ends[k]) lands at out[at[k]:at[k] + len]
+        cut = np.flatnonzero(np.diff(indices) != 1) + 1
+        starts = indices[np.r_[0, cut]] if len(indices) else indices
+        ends = indices[np.r_[cut - 1, len(indices) - 1]] + 1 if len(indices) else indices
+        at = np.r_[0, cut] if len(indices) else indices
+        with h5py.File(self.path, "r") as h5:
+            for n in todo:
+                if n in self.sequence_groups:  # (S, dim): small, read whole
+                    per_seq = np.asarray(h5["per_sequence"][n][()], dtype=np.float32)
+                    out[n] = per_seq[self.row_sequence[indices]]
+                    continue
+                x = np.empty((len(indices), self.dims[n]), dtype=np.float32)
+                ds = h5[n]
+                for a, b, k in zip(starts.tolist(), ends.tolist(), at.tolist(), strict=True):
+                    ds.read_direct(x, np.s_[a:b], np.s_[k:k + b - a])
+                out[n] = x
+        return {n: out[n] for n in names}
+
 
 def _str(x: Any) -> str:
     return x.decode() if isinstance(x, bytes) else str(x)
@@ -481,17 +521,30 @@ def split(cache: FeatureCache, val_fraction: float = 0.1, seed: int = 0,
 
 
 def fit_stats(cache: FeatureCache, groups: Iterable[str], rows: np.ndarray,
-              min_std: float | None = None) -> FeatureStats:
+              min_std: float | None = None, chunk: int = 16384) -> FeatureStats:
     """Per-column mean and std (floored at ``min_std``, default the cache config's) of
-    ``groups`` over the given rows (the training split only, so validation stays unseen)."""
+    ``groups`` over the given rows (the training split only, so validation stays unseen).
+
+    Read ``chunk`` rows at a time through :meth:`FeatureCache.read` (the cache keeps no
+    group it did not already hold) and combined in float64 with Chan et al.'s pairwise
+    update, so memory holds one chunk, not a group in float64.
+    """
     floor = cache.config.min_std if min_std is None else min_std
+    rows = np.asarray(rows, dtype=np.int64)
     mean, std = {}, {}
     for name in groups:
-        x = cache.rows(name, rows).astype(np.float64)
-        if len(x) == 0:
+        if len(rows) == 0:
             raise ValueError(f"{cache.path}: no rows to fit statistics of {name!r} on")
-        mean[name] = x.mean(0).astype(np.float32)
-        std[name] = np.maximum(x.std(0), floor).astype(np.float32)
+        n, mu, m2 = 0, np.zeros(cache.dims[name]), np.zeros(cache.dims[name])
+        for lo in range(0, len(rows), chunk):
+            x = cache.read([name], rows[lo:lo + chunk])[name].astype(np.float64)
+            k, mu_k = len(x), x.mean(0)
+            delta, total = mu_k - mu, n + k
+            m2 += ((x - mu_k) ** 2).sum(0) + delta ** 2 * (n * k / total)
+            mu += delta * (k / total)
+            n = total
+        mean[name] = mu.astype(np.float32)
+        std[name] = np.maximum(np.sqrt(m2 / n), floor).astype(np.float32)
     return FeatureStats(mean, std)
 
 
@@ -528,12 +581,64 @@ def collate_batch(batch: Any) -> Any:
     return batch
 
 
-def _normalized(cache: FeatureCache, name: str, rows: np.ndarray,
-                stats: FeatureStats | None) -> np.ndarray:
-    x = cache.rows(name, rows)
+def _apply_stats(name: str, x: np.ndarray, stats: FeatureStats | None) -> np.ndarray:
     if stats is not None and name in stats.mean:
         x = stats.normalize(name, x)
     return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def _normalized(cache: FeatureCache, name: str, rows: np.ndarray,
+                stats: FeatureStats | None) -> np.ndarray:
+    return _apply_stats(name, cache.rows(name, rows), stats)
+
+
+class _Stream:
+    """A streamed dataset's rows: the normalised rows of the whole sequences its current
+    batches need, read from the cache file (:meth:`FeatureCache.read`) when they change;
+    nothing else of the groups is held.
+
+    Attributes:
+        sequences: (k,) sorted sequence indices whose rows are held.
+        local: (N_total,) int64 position of each global row in the held arrays (-1: not held).
+        data: group -> (rows held, dim) float32, normalised.
+        reads: how many times rows were read (diagnostics and tests).
+    """
+
+    def __init__(self, cache: FeatureCache, groups: Sequence[str],
+                 stats: FeatureStats | None) -> None:
+        self.cache, self.groups, self.stats = cache, list(dict.fromkeys(groups)), stats
+        self.sequences = np.zeros(0, dtype=np.int64)
+        self.local = np.full(cache.num_rows, -1, dtype=np.int64)
+        self.data: dict[str, np.ndarray] = {}
+        self.reads = 0
+
+    def hold(self, sequences: Iterable[int]) -> None:
+        """Read the rows of exactly these sequences (the previous ones are let go)."""
+        seqs = np.unique(np.fromiter(sequences, dtype=np.int64))
+        if np.array_equal(seqs, self.sequences):
+            return
+        rows = self.cache.sequence_rows(seqs)
+        self.data = {}  # let the previous block go before reading the next
+        raw = self.cache.read(self.groups, rows)
+        self.data = {g: _apply_stats(g, raw.pop(g), self.stats) for g in self.groups}
+        self.local.fill(-1)
+        self.local[rows] = np.arange(len(rows))
+        self.sequences = seqs
+        self.reads += 1
+
+    def release(self) -> None:
+        """Let the held rows go (the next batch reads its own)."""
+        self.data, self.sequences = {}, np.zeros(0, dtype=np.int64)
+        self.local.fill(-1)
+
+    def take(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """group -> rows.shape + (dim,) normalised values at the given global rows (their
+        sequences are read first when not all held)."""
+        idx = self.local[rows]
+        if (idx < 0).any():
+            self.hold(self.cache.row_sequence[rows.reshape(-1)])
+            idx = self.local[rows]
+        return {g: v[idx] for g, v in self.data.items()}
 
 
 class FrameDataset(torch.utils.data.Dataset):
@@ -541,6 +646,9 @@ class FrameDataset(torch.utils.data.Dataset):
 
     Item i is ``(inputs, targets)``: two dicts group -> float32 tensor (dim,), normalised with
     ``stats`` where it has the group. ``__getitems__`` returns the same with (B, dim) tensors.
+    The rows are copied into memory (``inputs``, ``targets``), or, built with
+    :meth:`streamed`, read from the cache file as batches need them (serve it with
+    :class:`BlockLoader`).
 
     Args:
         cache: the feature cache.
@@ -552,9 +660,29 @@ class FrameDataset(torch.utils.data.Dataset):
     def __init__(self, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
                  indices: np.ndarray, stats: FeatureStats | None = None) -> None:
         self.indices = np.asarray(indices, dtype=np.int64)
+        self.cache, self.groups_in, self.groups_out = cache, list(groups_in), list(groups_out)
+        self.stream: _Stream | None = None
         # Copy the needed rows once (normalised), so batches are plain slices of numpy arrays.
         self.inputs = {g: _normalized(cache, g, self.indices, stats) for g in groups_in}
         self.targets = {g: _normalized(cache, g, self.indices, stats) for g in groups_out}
+
+    @classmethod
+    def streamed(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
+                 indices: np.ndarray, stats: FeatureStats | None = None) -> FrameDataset:
+        """The same items as ``FrameDataset(cache, groups_in, groups_out, indices, stats)``
+        with no rows copied: a batch reads the rows of its items' whole sequences from the
+        file (kept until a batch needs others), so memory holds one block of sequences under
+        :class:`BlockLoader`. ``inputs`` and ``targets`` are empty."""
+        ds = cls.__new__(cls)
+        ds.indices = np.asarray(indices, dtype=np.int64)
+        ds.cache, ds.groups_in, ds.groups_out = cache, list(groups_in), list(groups_out)
+        ds.inputs, ds.targets = {}, {}
+        ds.stream = _Stream(cache, [*groups_in, *groups_out], stats)
+        return ds
+
+    def item_sequences(self) -> np.ndarray:
+        """(len,) int64 the sequence each item's row belongs to."""
+        return self.cache.row_sequence[self.indices]
 
     @classmethod
     def splits(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
@@ -569,6 +697,8 @@ class FrameDataset(torch.utils.data.Dataset):
         for rows in index_sets:
             ds = cls.__new__(cls)
             ds.indices, ds.inputs, ds.targets = np.asarray(rows, dtype=np.int64), {}, {}
+            ds.cache, ds.groups_in, ds.groups_out = cache, list(groups_in), list(groups_out)
+            ds.stream = None
             out.append(ds)
         for g in dict.fromkeys([*groups_in, *groups_out]):
             for ds in out:
@@ -587,12 +717,16 @@ class FrameDataset(torch.utils.data.Dataset):
         return len(self.indices)
 
     def __getitem__(self, i: int) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        return ({k: torch.from_numpy(v[i]) for k, v in self.inputs.items()},
-                {k: torch.from_numpy(v[i]) for k, v in self.targets.items()})
+        x, y = self.__getitems__([i])
+        return {k: v[0] for k, v in x.items()}, {k: v[0] for k, v in y.items()}
 
     def __getitems__(self, idx: Sequence[int]
                      ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         idx = np.asarray(idx, dtype=np.int64)
+        if self.stream is not None:
+            v = self.stream.take(self.indices[idx])
+            return ({k: torch.from_numpy(v[k]) for k in self.groups_in},
+                    {k: torch.from_numpy(v[k]) for k in self.groups_out})
         return ({k: torch.from_numpy(v[idx]) for k, v in self.inputs.items()},
                 {k: torch.from_numpy(v[idx]) for k, v in self.targets.items()})
 
@@ -616,6 +750,8 @@ class WindowDataset(torch.utils.data.Dataset):
             order (e.g. a :class:`FrameDataset`'s inputs and targets over the same rows): used
             as they are, not copied, so PoseNet's closed-loop windows share its training
             rows' memory. None: copied from the cache.
+        stream: copy nothing; a batch reads its windows' whole sequences from the file, as
+            :meth:`FrameDataset.streamed` (serve it with :class:`BlockLoader`).
     """
 
     DEFAULT_GROUPS = ("joint_positions", "control_line", "hand_phases",
@@ -624,7 +760,9 @@ class WindowDataset(torch.utils.data.Dataset):
     def __init__(self, cache: FeatureCache, window: int = 60, stride: int | None = None,
                  sequences: Iterable[int] | None = None, groups: Sequence[str] | None = None,
                  stats: FeatureStats | None = None,
-                 rows: Mapping[str, np.ndarray] | None = None) -> None:
+                 rows: Mapping[str, np.ndarray] | None = None, stream: bool = False) -> None:
+        if stream and rows is not None:
+            raise ValueError("WindowDataset: a streamed dataset takes no rows")
         if window < 1:
             raise ValueError(f"window must be positive, got {window}")
         stride = stride or max(1, window // 2)
@@ -643,6 +781,11 @@ class WindowDataset(torch.utils.data.Dataset):
                 first.append(hi - window)
             starts.extend(first)
         self.starts = np.asarray(starts, dtype=np.int64)
+        self.cache = cache
+        self.stream = _Stream(cache, groups, stats) if stream else None
+        if self.stream is not None:
+            self.data: dict[str, np.ndarray] = {}
+            return
         selected = cache.sequence_rows(seqs)
         # Keep the selected sequences' rows (normalised) and map global rows into them.
         self._local = np.full(cache.num_rows + 1, -1, dtype=np.int64)
@@ -659,8 +802,15 @@ class WindowDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.starts)
 
+    def item_sequences(self) -> np.ndarray:
+        """(len,) int64 the sequence each window lies in."""
+        return self.cache.row_sequence[self.starts]
+
     def _take(self, starts: np.ndarray) -> dict[str, torch.Tensor]:
-        idx = self._local[starts[:, None] + np.arange(self.window)]  # (B, window)
+        rows = starts[:, None] + np.arange(self.window)  # (B, window) global rows
+        if self.stream is not None:
+            return {k: torch.from_numpy(v) for k, v in self.stream.take(rows).items()}
+        idx = self._local[rows]
         return {k: torch.from_numpy(v[idx]) for k, v in self.data.items()}
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
@@ -668,6 +818,91 @@ class WindowDataset(torch.utils.data.Dataset):
 
     def __getitems__(self, idx: Sequence[int]) -> dict[str, torch.Tensor]:
         return self._take(self.starts[np.asarray(idx, dtype=np.int64)])
+
+
+class BlockLoader:
+    """Batches of a streamed :class:`FrameDataset` or :class:`WindowDataset`, a block of
+    whole sequences at a time (in place of a ``DataLoader``, which would read a batch's rows
+    from all over the file).
+
+    An epoch takes the dataset's sequences in order (``shuffle``: in a random order drawn
+    from ``generator``) and groups them into blocks of at least ``block_rows`` cache rows (a
+    block is one file read, ~18 KB a row for PoseNet); the items of a block, with those left
+    over from the previous block when it did not end on a whole batch, are served in batches
+    of ``batch_size`` (``shuffle``: in random order). Every item comes once an epoch, in
+    ``ceil(len / batch_size)`` batches as from a ``DataLoader`` without ``drop_last``;
+    shuffling mixes items across ``block_rows`` rows rather than across the whole dataset.
+    """
+
+    def __init__(self, dataset: FrameDataset | WindowDataset, batch_size: int,
+                 block_rows: int, shuffle: bool = False,
+                 generator: torch.Generator | None = None) -> None:
+        if dataset.stream is None:
+            raise ValueError("BlockLoader serves streamed datasets (FrameDataset.streamed, "
+                             "WindowDataset(stream=True))")
+        if batch_size < 1 or block_rows < 1:
+            raise ValueError(f"batch_size and block_rows must be positive, got {batch_size} "
+                             f"and {block_rows}")
+        self.dataset, self.batch_size, self.block_rows = dataset, batch_size, block_rows
+        self.shuffle, self.generator = shuffle, generator
+
+    def __len__(self) -> int:
+        return -(-len(self.dataset) // self.batch_size)
+
+    def _perm(self, n: int) -> np.ndarray:
+        if not self.shuffle:
+            return np.arange(n)
+        return torch.randperm(n, generator=self.generator).numpy()
+
+    def plan(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+        """One epoch's order: [(sequences to hold, [item positions of each batch])] per block
+        (draws from ``generator`` when shuffling)."""
+        seq_of = self.dataset.item_sequences()
+        by_seq = np.argsort(seq_of, kind="stable")
+        seqs, first, counts = np.unique(seq_of[by_seq], return_index=True, return_counts=True)
+        lengths = self.dataset.cache.lengths()[seqs]
+        order = self._perm(len(seqs))
+        out: list[tuple[np.ndarray, list[np.ndarray]]] = []
+        carry = np.zeros(0, dtype=np.int64)
+        block: list[int] = []
+        rows = 0
+        for k, j in enumerate(order.tolist()):
+            block.append(j)
+            rows += int(lengths[j])
+            if rows < self.block_rows and k + 1 < len(order):
+                continue
+            items = np.concatenate([carry, *[by_seq[first[b]:first[b] + counts[b]]
+                                             for b in block]])
+            items = items[self._perm(len(items))]
+            last = k + 1 == len(order)
+            full = len(items) if last else len(items) // self.batch_size * self.batch_size
+            hold = np.union1d(seqs[block], seq_of[carry])
+            out.append((hold, [items[i:i + self.batch_size]
+                               for i in range(0, full, self.batch_size)]))
+            carry, block, rows = items[full:], [], 0
+        return out
+
+    def __iter__(self) -> Iterator[Any]:
+        stream = self.dataset.stream
+        assert stream is not None
+        try:
+            for hold, batches in self.plan():
+                stream.hold(hold)
+                for b in batches:
+                    yield self.dataset.__getitems__(b)
+        finally:  # one block in memory at a time across the loaders of a training
+            stream.release()
+
+
+def make_loader(dataset: torch.utils.data.Dataset, batch_size: int, shuffle: bool = False,
+                generator: torch.Generator | None = None, block_rows: int = 0) -> Iterable[Any]:
+    """Batches of one of the datasets here: a :class:`BlockLoader` for a streamed one (blocks
+    of ``block_rows`` rows), else a ``DataLoader`` slicing whole batches
+    (:func:`collate_batch`)."""
+    if getattr(dataset, "stream", None) is not None:
+        return BlockLoader(dataset, batch_size, block_rows, shuffle, generator)  # type: ignore[arg-type]
+    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=shuffle,
+                                       generator=generator, collate_fn=collate_batch)
 
 
 def stack_groups(values: Mapping[str, torch.Tensor], names: Sequence[str]) -> torch.Tensor:

@@ -32,7 +32,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -49,11 +49,11 @@ from couch.synthesis.data import (
     FrameDataset,
     WindowDataset,
     build_cache,
-    collate_batch,
     contact_rows,
     feature_config_from_json,
     find_sequences,
     fit_stats,
+    make_loader,
     split,
 )
 from couch.synthesis.features import (
@@ -99,6 +99,9 @@ PRESETS: tuple[str, ...] = ("paper", "cpu", "ci")
 TEACHER_ALWAYS = 1e9
 #: Where PoseNet's control input comes from (``TrainConfig.control_source``).
 CONTROL_SOURCES: tuple[str, ...] = ("data", "controlnet")
+#: ``couch-train --stream``'s rows per block: ~300 MB of PoseNet's rows, ~45 simulated
+#: sequences mixed in each block's batches.
+STREAM_ROWS = 16384
 #: PoseNet's control input groups, which ``control_source="controlnet"`` replaces.
 CONTROL_GROUPS: tuple[str, ...] = ("control_root_positions", "control_phases")
 
@@ -179,6 +182,14 @@ class TrainConfig:
             the control input it will be given rather than an exact future.
         window: ControlNet frames per training window (paper 60).
         stride: ControlNet rows between window starts (0: window // 2).
+        stream_rows: PoseNet, the baseline and ControlNet: 0 (default) copies the rows they
+            train and validate on into memory; N > 0 reads them from ``features.h5`` as
+            batches need them, N rows of whole sequences at a time
+            (:class:`couch.synthesis.data.BlockLoader`), so memory holds one block instead of
+            the rows (5.6 GB for the ``cpu`` PoseNet on 300k rows). Shuffling then mixes rows
+            within a block of sequences in random order, not across the whole data, so the
+            batches (and the trained weights) differ from an in-memory run's. ContactNet's
+            samples (one per sequence and contact set) are always in memory.
         val_fraction: share of chairs (or sequences) held out for validation.
         split_by: "object" (held-out chairs when >= 3) or "sequence".
         network: the network's config (``ControlNetConfig`` etc.) as a plain dict.
@@ -200,6 +211,7 @@ class TrainConfig:
     control_source: str = "data"
     window: int = 60
     stride: int = 0
+    stream_rows: int = 0
     val_fraction: float = 0.1
     split_by: str = "object"
     network: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -350,7 +362,7 @@ def _control_stats(cache: FeatureCache, rows: np.ndarray) -> FeatureStats:
     and Eq. 2's regulariser compares the two, so both must live in the same space, and zero
     (= no contact target) must stay zero. Phases are already in [0, 1]; the pose is z-scored."""
     stats = fit_stats(cache, ["joint_positions"], rows)
-    traj = cache.rows("next_control_positions", rows)
+    traj = cache.read(["next_control_positions"], rows)["next_control_positions"]
     nonzero = traj[traj != 0]
     scale = float(np.sqrt(np.mean(nonzero.astype(np.float64) ** 2))) if nonzero.size else 1.0
     scale = max(scale, cache.config.min_std)
@@ -376,8 +388,9 @@ def _control_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: 
                 out_dim=traj + phase)
     model = ControlNet(config=ncfg, **dims)
     stride = cfg.stride or None
-    train_ds = WindowDataset(cache, cfg.window, stride, train, stats=stats)
-    val_ds = WindowDataset(cache, cfg.window, stride, val, stats=stats)
+    stream = cfg.stream_rows > 0
+    train_ds = WindowDataset(cache, cfg.window, stride, train, stats=stats, stream=stream)
+    val_ds = WindowDataset(cache, cfg.window, stride, val, stats=stats, stream=stream)
     if len(train_ds) == 0:
         raise ValueError(f"{cache.path}: no training sequence has {cfg.window} frames for "
                          "ControlNet windows")
@@ -421,9 +434,13 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
     gating = {g: d[g] for g in GATING_GROUPS[cfg.net]}
     out_dim = sum(d[g] for g in groups_out)
     model = PoseNet(inputs, gating, out_dim, ncfg)
-    train_ds, val_ds = FrameDataset.splits(
-        cache, groups_in, groups_out, [cache.sequence_rows(train), cache.sequence_rows(val)],
-        stats)
+    stream = cfg.stream_rows > 0
+    index_sets = [cache.sequence_rows(train), cache.sequence_rows(val)]
+    if stream:
+        train_ds, val_ds = (FrameDataset.streamed(cache, groups_in, groups_out, rows, stats)
+                            for rows in index_sets)
+    else:
+        train_ds, val_ds = FrameDataset.splits(cache, groups_in, groups_out, index_sets, stats)
     widths = [d[g] for g in groups_out]
     rollout_ds = None
     if cfg.rollout_epochs > 0:
@@ -431,15 +448,18 @@ def _pose_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: Tra
             raise ValueError(f"rollout_epochs {cfg.rollout_epochs} needs rollout windows of at "
                              f"least 2 frames, got rollout={cfg.rollout}")
         groups = groups_in + groups_out
-        # the windows read the frame datasets' rows (the same rows, normalised alike)
+        # in memory, the windows read the frame datasets' rows (the same rows, normalised
+        # alike); streamed, each reads its own blocks
         rollout_ds = WindowDataset(cache, cfg.rollout, max(1, cfg.rollout // 2), train,
-                                   groups=groups, stats=stats,
-                                   rows={**train_ds.inputs, **train_ds.targets})
+                                   groups=groups, stats=stats, stream=stream,
+                                   rows=None if stream else {**train_ds.inputs,
+                                                             **train_ds.targets})
         if len(rollout_ds) == 0:
             raise ValueError(f"{cache.path}: no training sequence has {cfg.rollout} frames for "
                              "PoseNet's closed-loop windows (rollout)")
         val_ds = WindowDataset(cache, cfg.rollout, cfg.rollout, val, groups=groups, stats=stats,
-                               rows={**val_ds.inputs, **val_ds.targets})
+                               stream=stream,
+                               rows=None if stream else {**val_ds.inputs, **val_ds.targets})
     feedback = pose_feedback(groups_out, widths, stats)
     if cfg.hand_weight <= 0:
         raise ValueError(f"hand_weight must be positive, got {cfg.hand_weight}")
@@ -701,7 +721,7 @@ def _save(obj: dict[str, Any], path: Path) -> None:
         torch.save(obj, tmp)
 
 
-def _run_epoch(task: _Task, loader: torch.utils.data.DataLoader, epoch: int, training: bool,
+def _run_epoch(task: _Task, loader: Iterable[Any], epoch: int, training: bool,
                optimizer: torch.optim.Optimizer | None, cfg: TrainConfig, device: torch.device,
                gen: torch.Generator | None, bar: bool, desc: str) -> dict[str, float]:
     """Mean of each loss term over the epoch's samples (nan for an empty loader)."""
@@ -837,15 +857,12 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
         start = int(checkpoint["epoch"]) + 1
     resumed_from = start - 1
 
-    bs = cfg.batch_size
+    bs, block = cfg.batch_size, cfg.stream_rows
     loader_gen = torch.Generator()
-    train_loader = torch.utils.data.DataLoader(task.train_ds, batch_size=bs, shuffle=True,
-                                               generator=loader_gen, collate_fn=collate_batch)
-    val_loader = torch.utils.data.DataLoader(task.val_ds, batch_size=bs, shuffle=False,
-                                             collate_fn=collate_batch)
-    rollout_loader = (None if task.rollout_ds is None else torch.utils.data.DataLoader(
-        task.rollout_ds, batch_size=bs, shuffle=True, generator=loader_gen,
-        collate_fn=collate_batch))
+    train_loader = make_loader(task.train_ds, bs, True, loader_gen, block)
+    val_loader = make_loader(task.val_ds, bs, False, None, block)
+    rollout_loader = (None if task.rollout_ds is None else
+                      make_loader(task.rollout_ds, bs, True, loader_gen, block))
     first_rollout = cfg.epochs - cfg.rollout_epochs + 1
     roll_gen = torch.Generator(device=device)
     t_call = time.perf_counter()
@@ -908,7 +925,8 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
           device: str = "cpu", seed: int = 0, resume: bool = True, progress: bool = True,
           threads: int | None = 1, stop_after: int | None = None,
           configs: Mapping[str, TrainConfig] | None = None,
-          features: FeatureConfig | None = None, keep_epochs: bool = False) -> TrainResult:
+          features: FeatureConfig | None = None, keep_epochs: bool = False,
+          stream_rows: int | None = None) -> TrainResult:
     """Train ``net`` (control | pose | contact | baseline | all) on the sequences under
     ``data_paths``, writing everything into ``run_dir`` (see the module docstring).
 
@@ -932,6 +950,9 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
             ``load_trained(..., which=N)``), so that ``couch-eval --which`` can score epochs by
             closed-loop synthesis rather than by validation loss (README, *Results so far*).
             PoseNet's is ~11 MB per epoch.
+        stream_rows: set every network's ``TrainConfig.stream_rows`` (read the training rows
+            from the cache file N rows at a time instead of copying them into memory; 0: copy);
+            None keeps the configs' (0 in every preset).
     Raises:
         FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
     """
@@ -939,6 +960,10 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
     if any(n not in NETS for n in nets):
         raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)} or all")
     cfgs = {n: (configs or {}).get(n) or preset_config(n, preset, epochs) for n in nets}
+    if stream_rows is not None:
+        if stream_rows < 0:
+            raise ValueError(f"stream_rows must not be negative, got {stream_rows}")
+        cfgs = {n: dataclasses.replace(c, stream_rows=int(stream_rows)) for n, c in cfgs.items()}
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {device!r} requested but CUDA is not available")
@@ -1133,6 +1158,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-epochs", action="store_true",
                    help="also keep every epoch's model (RUN/<net>/epochs/NNN.pt) to choose one "
                         "by synthesis: couch-eval --which")
+    p.add_argument("--stream", type=int, nargs="?", const=STREAM_ROWS, default=None,
+                   metavar="ROWS",
+                   help="read the training rows from RUN/features.h5 as batches need them, "
+                        f"ROWS rows of whole sequences at a time (default {STREAM_ROWS}), "
+                        "instead of copying them into memory (for data larger than memory; "
+                        "shuffles within blocks, so the weights differ from an in-memory run)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     return p
 
@@ -1156,6 +1187,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"couch-train: error: {flag} must not be negative, got {value}",
                   file=sys.stderr)
             return 2
+    if args.stream is not None and args.stream < 1:
+        print(f"couch-train: error: --stream must be at least 1 row, got {args.stream}",
+              file=sys.stderr)
+        return 2
     if args.hand_weight is not None and not args.hand_weight > 0:
         print(f"couch-train: error: --hand-weight must be positive, got {args.hand_weight}",
               file=sys.stderr)
@@ -1173,6 +1208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        epochs=args.epochs, device=args.device, seed=args.seed,
                        resume=not args.no_resume, progress=not args.quiet, threads=args.threads,
                        configs=configs, keep_epochs=args.keep_epochs,
+                       stream_rows=args.stream,
                        features=(None if args.control_line_end is None else
                                  FeatureConfig(control_line_end=args.control_line_end)))
     except (FileNotFoundError, ValueError, SchemaError) as e:

@@ -22,6 +22,7 @@ import torch
 from couch.body.skeleton import CONTACT_NAMES, JOINT_INDEX
 from couch.schema import SCHEMA_VERSION, read_processed, write_processed, write_session_group
 from couch.synthesis.data import (
+    BlockLoader,
     FeatureCache,
     FrameDataset,
     WindowDataset,
@@ -31,7 +32,9 @@ from couch.synthesis.data import (
     collate_batch,
     contact_rows,
     find_sequences,
+    fit_stats,
     load_sequence,
+    make_loader,
     split,
 )
 from couch.synthesis.features import LAYOUT, SIT, FeatureStats
@@ -177,6 +180,127 @@ def test_frame_dataset_splits_match_one_by_one_and_free_the_cache(trained):
     with pytest.raises(ValueError, match="do not cover"):
         WindowDataset(cache, 4, 2, val_seqs, groups=groups, stats=stats,
                       rows={**train_ds.inputs, **train_ds.targets})
+
+
+def test_fit_stats_reads_in_chunks_and_matches_numpy(trained):
+    cache = FeatureCache(trained.cache_path)
+    rows = cache.sequence_rows(split(cache)[0])
+    groups = ["joint_positions", "contact_condition", "hand_mask"]
+    cache.release(cache.dims)  # the split read the chairs' grids
+    stats = fit_stats(cache, groups, rows, chunk=37)  # many uneven chunks
+    assert not set(groups) & set(cache._data)  # read from the file, nothing kept
+    for g in groups:
+        x = cache.rows(g, rows).astype(np.float64)
+        np.testing.assert_allclose(stats.mean[g], x.mean(0), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(stats.std[g], np.maximum(x.std(0), cache.config.min_std),
+                                   rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="no rows"):
+        fit_stats(cache, groups, rows[:0])
+
+
+def _stream_setup(trained):
+    cache = FeatureCache(trained.cache_path)
+    train_seqs, _ = split(cache)
+    _, stats, meta = load_trained(trained.run_dir, "pose", which="last")
+    return cache, train_seqs, stats, meta["groups_in"], meta["groups_out"]
+
+
+def test_streamed_frames_serve_the_in_memory_rows_a_block_at_a_time(trained):
+    cache, train_seqs, stats, groups_in, groups_out = _stream_setup(trained)
+    rows = cache.sequence_rows(train_seqs)
+    mem = FrameDataset(cache, groups_in, groups_out, rows, stats)
+    cache.release(cache.dims)
+    streamed = FrameDataset.streamed(cache, groups_in, groups_out, rows, stats)
+    assert len(streamed) == len(mem) and not streamed.inputs
+    lengths = cache.lengths()[train_seqs]
+    block, bs = int(lengths.min()) // 2, 7  # a block is one sequence: batches carry over
+    loader = BlockLoader(streamed, bs, block, shuffle=True,
+                         generator=torch.Generator().manual_seed(3))
+    plan = loader.plan()
+    batches = [b for _, bb in plan for b in bb]
+    assert len(plan) == len(train_seqs) and len(batches) == len(loader) == -(-len(mem) // bs)
+    assert all(len(b) == bs for b in batches[:-1]) and 0 < len(batches[-1]) <= bs
+    served = np.concatenate(batches)
+    np.testing.assert_array_equal(np.sort(served), np.arange(len(mem)))  # each row once
+    assert not np.array_equal(served, np.arange(len(mem)))  # shuffled
+    carried = 0
+    for hold, bb in plan:
+        streamed.stream.hold(hold)
+        # a block holds its sequence and the sequences of the items carried into it
+        carried += len(hold) > 1
+        for b in bb:
+            x, y = streamed.__getitems__(b)
+            ex, ey = mem.__getitems__(b)
+            for g in groups_in:
+                assert torch.equal(x[g], ex[g])
+            for g in groups_out:
+                assert torch.equal(y[g], ey[g])
+    assert carried > 0
+    assert streamed.stream.reads == len(plan)  # no batch read outside its block
+    assert not set(cache.dims) & set(cache._data)  # the cache kept no group
+    # the loader itself: reproducible from the generator's seed; lets its block go after
+    def epoch(seed):
+        gen = torch.Generator().manual_seed(seed)
+        return torch.cat([x["joint_positions"] for x, _ in BlockLoader(streamed, bs, block,
+                                                                        True, gen)])
+    first = epoch(5)
+    assert torch.equal(first, epoch(5)) and not torch.equal(first, epoch(6))
+    assert not streamed.stream.data and len(first) == len(mem)
+    # any item alone reads what it needs
+    i = len(mem) // 3
+    assert torch.equal(streamed[i][1]["next_joint_positions"],
+                       mem[i][1]["next_joint_positions"])
+    assert isinstance(make_loader(mem, bs), torch.utils.data.DataLoader)
+    assert isinstance(make_loader(streamed, bs, block_rows=block), BlockLoader)
+    with pytest.raises(ValueError, match="streamed datasets"):
+        BlockLoader(mem, bs, block)
+
+
+def test_streamed_windows_serve_the_in_memory_windows(trained):
+    cache, train_seqs, stats, groups_in, groups_out = _stream_setup(trained)
+    groups = groups_in + groups_out
+    mem = WindowDataset(cache, 8, 4, train_seqs, groups=groups, stats=stats)
+    cache.release(cache.dims)
+    streamed = WindowDataset(cache, 8, 4, train_seqs, groups=groups, stats=stats, stream=True)
+    np.testing.assert_array_equal(streamed.starts, mem.starts)
+    loader = BlockLoader(streamed, 5, 10**9)  # one block: every sequence read once
+    plan = loader.plan()
+    assert len(plan) == 1
+    np.testing.assert_array_equal(np.concatenate(plan[0][1]), np.arange(len(mem)))
+    got = list(loader)
+    assert streamed.stream.reads == 1
+    for b, x in zip(plan[0][1], got, strict=True):
+        expect = mem.__getitems__(b)
+        assert list(x) == list(expect)
+        for g in groups:
+            assert torch.equal(x[g], expect[g])
+    with pytest.raises(ValueError, match="takes no rows"):
+        WindowDataset(cache, 8, 4, train_seqs, groups=groups, stream=True, rows=mem.data)
+
+
+def test_streamed_training_learns_resumes_and_reproduces(sim, tmp_path):
+    """PoseNet (closed-loop epochs included) and ControlNet trained on rows streamed from
+    the cache: losses fall, the setting is recorded, and a resumed run ends where an
+    uninterrupted one does."""
+    whole = train([sim], tmp_path / "a", net="all", preset="ci", progress=False,
+                  stream_rows=300)
+    for net in ("pose", "control"):
+        r = whole.nets[net]
+        assert r.train_loss[-1] < r.train_loss[0]
+        assert all(np.isfinite(r.val_loss))
+        ck = torch.load(r.dir / "checkpoint.pt", weights_only=True)
+        assert json.loads(ck["meta"])["train_config"]["stream_rows"] == 300
+    assert json.loads(torch.load(whole.nets["contact"].dir / "checkpoint.pt", weights_only=True
+                                 )["meta"])["train_config"]["stream_rows"] == 300
+    part = tmp_path / "b"
+    train([sim], part, net="pose", preset="ci", progress=False, stream_rows=300, stop_after=3)
+    with pytest.raises(ValueError, match=r"settings \(stream_rows\)"):
+        train([sim], part, net="pose", preset="ci", progress=False)  # in memory: refused
+    rest = train([sim], part, net="pose", preset="ci", progress=False, stream_rows=300)
+    assert rest.nets["pose"].resumed_from == 3
+    for key in ("train_loss", "val_loss"):
+        assert rest.nets["pose"].history[-1][key] == pytest.approx(
+            whole.nets["pose"].history[-1][key], rel=1e-5)
 
 
 def test_load_trained_matches_the_trained_model(trained):
@@ -522,6 +646,8 @@ def test_main_reports_bad_inputs(tmp_path, capsys):
     assert "--rollout-epochs must not be negative" in capsys.readouterr().err
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--hand-weight", "0"]) == 2
     assert "--hand-weight must be positive" in capsys.readouterr().err
+    assert main([str(foreign), "-o", str(tmp_path / "run"), "--stream", "0"]) == 2
+    assert "--stream must be at least 1 row" in capsys.readouterr().err
 
 
 def test_main_trains_and_resumes_finished_run(sim, trained, capsys):
