@@ -102,6 +102,10 @@ CONTROL_SOURCES: tuple[str, ...] = ("data", "controlnet")
 #: ``couch-train --stream``'s rows per block: ~300 MB of PoseNet's rows, ~45 simulated
 #: sequences mixed in each block's batches.
 STREAM_ROWS = 16384
+#: The training process's peak memory while the in-memory datasets are built, over the
+#: bytes of their rows (PoseNet's on 857 sequences: 9.64 GB peak for 5.17 GB of rows,
+#: README *Training*).
+BUILD_PEAK = 1.85
 #: PoseNet's control input groups, which ``control_source="controlnet"`` replaces.
 CONTROL_GROUPS: tuple[str, ...] = ("control_root_positions", "control_phases")
 
@@ -795,6 +799,34 @@ def _plot(path: Path, history: list[dict[str, float]], title: str) -> None:
     plt.close(fig)
 
 
+def rows_memory(net: str, cache: FeatureCache, sequences: np.ndarray, cfg: TrainConfig) -> int:
+    """Bytes ``net``'s datasets copy into memory for these sequences (float32 rows of the
+    groups it reads; 0 when ``cfg`` streams them, and for ContactNet's few samples). Building
+    them peaks at ~:data:`BUILD_PEAK` times this."""
+    if net == "contact" or cfg.stream_rows > 0:
+        return 0
+    if net == "control":
+        groups: Sequence[str] = WindowDataset.DEFAULT_GROUPS
+    else:
+        spec = layout(cache.config)[_LAYOUT_KEY[net]]
+        groups = list(dict.fromkeys([*spec["inputs"], *spec["targets"]]))
+    width = sum(cache.dims.get(g, 0) for g in groups)
+    return int(cache.lengths()[np.asarray(sequences, dtype=np.int64)].sum()) * width * 4
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``), None where
+    ``/proc/meminfo`` does not say."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: np.ndarray,
                cfg: TrainConfig, out: Path, *, device: torch.device, seed: int, resume: bool,
                progress: bool, stop_after: int | None, keep_epochs: bool = False,
@@ -826,6 +858,14 @@ def _train_net(net: str, cache: FeatureCache, train_seqs: np.ndarray, val_seqs: 
     stats = FeatureStats.load(stats_path) if checkpoint is not None and stats_path.is_file() \
         else None
 
+    need, have = rows_memory(net, cache, np.concatenate([train_seqs, val_seqs]), cfg), \
+        available_memory()
+    if have is not None and BUILD_PEAK * need > have:
+        # an OOM kill says nothing; say it before the copy is attempted
+        print(f"couch-train: warning: {net}'s rows take ~{need / 2**30:.1f} GB copied into "
+              f"memory (~{BUILD_PEAK * need / 2**30:.1f} GB while copied) and "
+              f"{have / 2**30:.1f} GB is available; --stream (stream_rows) reads them from the "
+              "feature cache instead", file=sys.stderr)
     _seed_all(seed)  # model initialisation
     task = _TASKS[net](cache, train_seqs, val_seqs, cfg, stats)
     task.stats.save(stats_path)

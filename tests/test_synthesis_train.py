@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import importlib
 import json
 import os
 import re
@@ -43,6 +44,7 @@ from couch.synthesis.train import (
     NETS,
     TEACHER_ALWAYS,
     WEIGHTED_JOINTS,
+    available_memory,
     load_trained,
     main,
     output_weights,
@@ -50,6 +52,7 @@ from couch.synthesis.train import (
     pose_feedback,
     pose_inputs,
     preset_config,
+    rows_memory,
     train,
 )
 
@@ -301,6 +304,27 @@ def test_streamed_training_learns_resumes_and_reproduces(sim, tmp_path):
     for key in ("train_loss", "val_loss"):
         assert rest.nets["pose"].history[-1][key] == pytest.approx(
             whole.nets["pose"].history[-1][key], rel=1e-5)
+
+
+def test_training_warns_when_its_rows_would_not_fit(sim, trained, tmp_path, monkeypatch,
+                                                   capsys):
+    cache = FeatureCache(trained.cache_path)
+    seqs = np.arange(cache.num_sequences)
+    cfg = preset_config("pose", "ci")
+    need = rows_memory("pose", cache, seqs, cfg)
+    groups = LAYOUT["posenet"]["inputs"] | LAYOUT["posenet"]["targets"]
+    assert need == cache.num_rows * sum(groups.values()) * 4
+    assert rows_memory("pose", cache, seqs, dataclasses.replace(cfg, stream_rows=64)) == 0
+    assert rows_memory("contact", cache, seqs, preset_config("contact", "ci")) == 0
+    assert available_memory() is None or available_memory() > 0
+    train_module = importlib.import_module("couch.synthesis.train")
+    monkeypatch.setattr(train_module, "available_memory", lambda: need)  # < the build's peak
+    train([sim], tmp_path, net="pose", preset="ci", epochs=1, progress=False)
+    err = capsys.readouterr().err
+    assert "pose's rows take" in err and "--stream" in err
+    train([sim], tmp_path / "s", net="pose", preset="ci", epochs=1, progress=False,
+          stream_rows=256)
+    assert "rows take" not in capsys.readouterr().err
 
 
 def test_load_trained_matches_the_trained_model(trained):
