@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -592,6 +593,10 @@ def _normalized(cache: FeatureCache, name: str, rows: np.ndarray,
     return _apply_stats(name, cache.rows(name, rows), stats)
 
 
+#: A streamed dataset's block: (sorted sequences, their global rows, group -> normalised rows).
+_Block = tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]
+
+
 class _Stream:
     """A streamed dataset's rows: the normalised rows of the whole sequences its current
     batches need, read from the cache file (:meth:`FeatureCache.read`) when they change;
@@ -612,19 +617,29 @@ class _Stream:
         self.data: dict[str, np.ndarray] = {}
         self.reads = 0
 
-    def hold(self, sequences: Iterable[int]) -> None:
-        """Read the rows of exactly these sequences (the previous ones are let go)."""
+    def read(self, sequences: Iterable[int]) -> _Block:
+        """(sorted sequences, their global rows, group -> normalised rows) read from the file;
+        changes nothing held, so a helper thread can read the next block (:meth:`put` it)."""
         seqs = np.unique(np.fromiter(sequences, dtype=np.int64))
-        if np.array_equal(seqs, self.sequences):
-            return
         rows = self.cache.sequence_rows(seqs)
-        self.data = {}  # let the previous block go before reading the next
         raw = self.cache.read(self.groups, rows)
-        self.data = {g: _apply_stats(g, raw.pop(g), self.stats) for g in self.groups}
+        return seqs, rows, {g: _apply_stats(g, raw.pop(g), self.stats) for g in self.groups}
+
+    def put(self, block: _Block) -> None:
+        """Hold a block :meth:`read` returned (the previous one is let go)."""
+        seqs, rows, self.data = block
         self.local.fill(-1)
         self.local[rows] = np.arange(len(rows))
         self.sequences = seqs
         self.reads += 1
+
+    def hold(self, sequences: Iterable[int]) -> None:
+        """Read and hold the rows of exactly these sequences (the previous ones are let go)."""
+        seqs = np.unique(np.fromiter(sequences, dtype=np.int64))
+        if np.array_equal(seqs, self.sequences):
+            return
+        self.data = {}  # let the previous block go before reading the next
+        self.put(self.read(seqs))
 
     def release(self) -> None:
         """Let the held rows go (the next batch reads its own)."""
@@ -832,6 +847,8 @@ class BlockLoader:
     of ``batch_size`` (``shuffle``: in random order). Every item comes once an epoch, in
     ``ceil(len / batch_size)`` batches as from a ``DataLoader`` without ``drop_last``;
     shuffling mixes items across ``block_rows`` rows rather than across the whole dataset.
+    While a block's batches are served the next block is read in a helper thread, so memory
+    holds two blocks.
     """
 
     def __init__(self, dataset: FrameDataset | WindowDataset, batch_size: int,
@@ -885,12 +902,23 @@ class BlockLoader:
     def __iter__(self) -> Iterator[Any]:
         stream = self.dataset.stream
         assert stream is not None
+        plan = self.plan()
+        # The next block is read in a helper thread while the current one's batches train
+        # (torch and most of HDF5's gzip work run without the GIL).
         try:
-            for hold, batches in self.plan():
-                stream.hold(hold)
-                for b in batches:
-                    yield self.dataset.__getitems__(b)
-        finally:  # one block in memory at a time across the loaders of a training
+            with ThreadPoolExecutor(1) as pool:
+                ahead = pool.submit(stream.read, plan[0][0]) if plan else None
+                for k, (_, batches) in enumerate(plan):
+                    assert ahead is not None
+                    block = ahead.result()
+                    stream.data = {}  # let the previous block go first
+                    stream.put(block)
+                    del block
+                    ahead = pool.submit(stream.read, plan[k + 1][0]) if k + 1 < len(plan) \
+                        else None
+                    for b in batches:
+                        yield self.dataset.__getitems__(b)
+        finally:  # a loader holds no block between epochs
             stream.release()
 
 

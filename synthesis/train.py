@@ -189,8 +189,9 @@ class TrainConfig:
         stream_rows: PoseNet, the baseline and ControlNet: 0 (default) copies the rows they
             train and validate on into memory; N > 0 reads them from ``features.h5`` as
             batches need them, N rows of whole sequences at a time
-            (:class:`couch.synthesis.data.BlockLoader`), so memory holds one block instead of
-            the rows (5.6 GB for the ``cpu`` PoseNet on 300k rows). Shuffling then mixes rows
+            (:class:`couch.synthesis.data.BlockLoader`), so memory holds two blocks (the one
+            served and the next, read ahead) instead of the rows (5.2 GB for the ``cpu``
+            PoseNet on 300k rows). Shuffling then mixes rows
             within a block of sequences in random order, not across the whole data, so the
             batches (and the trained weights) differ from an in-memory run's. ContactNet's
             samples (one per sequence and contact set) are always in memory.

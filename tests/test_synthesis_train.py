@@ -249,6 +249,10 @@ def test_streamed_frames_serve_the_in_memory_rows_a_block_at_a_time(trained):
     first = epoch(5)
     assert torch.equal(first, epoch(5)) and not torch.equal(first, epoch(6))
     assert not streamed.stream.data and len(first) == len(mem)
+    # ... and serves, block after block read ahead in a helper thread, the rows its plan says
+    order = np.concatenate([b for _, bb in BlockLoader(
+        streamed, bs, block, True, torch.Generator().manual_seed(5)).plan() for b in bb])
+    np.testing.assert_array_equal(first.numpy(), mem.inputs["joint_positions"][order])
     # any item alone reads what it needs
     i = len(mem) // 3
     assert torch.equal(streamed[i][1]["next_joint_positions"],
