@@ -331,6 +331,20 @@ def test_training_warns_when_its_rows_would_not_fit(sim, trained, tmp_path, monk
     assert "rows take" not in capsys.readouterr().err
 
 
+def test_training_bench_compares_memory_and_streamed(sim, capsys):
+    """``python -m couch.tools.bench.training`` trains in two child processes and prints
+    their peaks, epoch times and ratios (speed itself is not asserted)."""
+    from couch.tools.bench import training as bench
+
+    bench.main([str(sim), "--preset", "ci", "--stream", "200"])
+    out = capsys.readouterr().out
+    assert re.search(r"pose \(ci\) in memory: peak [\d.]+ GB, mean [\d.]+ GB; epochs "
+                     r"[\d.]+, [\d.]+ s", out)
+    assert "pose (ci) streamed : peak" in out
+    assert re.search(r"streamed / in memory: peak [\d.]+x, mean [\d.]+x, epoch time "
+                     r"[\d.]+x, [\d.]+x, call [\d.]+x \(200 rows a block\)", out)
+
+
 def test_load_trained_matches_the_trained_model(trained):
     cache = FeatureCache(trained.cache_path)
     train_seqs, _ = split(cache)
