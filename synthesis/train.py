@@ -193,8 +193,10 @@ class TrainConfig:
             served and the next, read ahead) instead of the rows (5.2 GB for the ``cpu``
             PoseNet on 300k rows). Shuffling then mixes rows
             within a block of sequences in random order, not across the whole data, so the
-            batches (and the trained weights) differ from an in-memory run's. ContactNet's
-            samples (one per sequence and contact set) are always in memory.
+            batches (and the trained weights) differ from an in-memory run's; the one
+            streamed PoseNet measured synthesised worse than its in-memory twin (README,
+            *Training*), so stream only when the rows do not fit. ContactNet's samples (one
+            per sequence and contact set) are always in memory.
         val_fraction: share of chairs (or sequences) held out for validation.
         split_by: "object" (held-out chairs when >= 3) or "sequence".
         network: the network's config (``ControlNetConfig`` etc.) as a plain dict.
@@ -1204,7 +1206,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="read the training rows from RUN/features.h5 as batches need them, "
                         f"ROWS rows of whole sequences at a time (default {STREAM_ROWS}), "
                         "instead of copying them into memory (for data larger than memory; "
-                        "shuffles within blocks, so the weights differ from an in-memory run)")
+                        "shuffles within blocks, so the weights differ from an in-memory run's "
+                        "and one measured run synthesised worse: README)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     return p
 
