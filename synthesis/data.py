@@ -337,11 +337,13 @@ class FeatureCache:
                 raise KeyError(f"{self.path}: no feature group {n!r}; has {sorted(self.dims)}")
         if not todo:
             return out
-        # runs of consecutive rows: [starts[k], ends[k]) lands at out[at[k]:at[k] + len]
-        cut = np.flatnonzero(np.diff(indices) != 1) + 1
-        starts = indices[np.r_[0, cut]] if len(indices) else indices
-        ends = indices[np.r_[cut - 1, len(indices) - 1]] + 1 if len(indices) else indices
-        at = np.r_[0, cut] if len(indices) else indices
+        # runs of consecutive rows: file rows [a, b) land at out[k:k + b - a]
+        runs: list[tuple[int, int, int]] = []
+        if len(indices):
+            at = np.r_[0, np.flatnonzero(np.diff(indices) != 1) + 1]
+            ends = np.r_[at[1:], len(indices)]
+            runs = list(zip(indices[at].tolist(), (indices[ends - 1] + 1).tolist(), at.tolist(),
+                            strict=True))
         with h5py.File(self.path, "r") as h5:
             for n in todo:
                 if n in self.sequence_groups:  # (S, dim): small, read whole
@@ -350,7 +352,7 @@ class FeatureCache:
                     continue
                 x = np.empty((len(indices), self.dims[n]), dtype=np.float32)
                 ds = h5[n]
-                for a, b, k in zip(starts.tolist(), ends.tolist(), at.tolist(), strict=True):
+                for a, b, k in runs:
                     ds.read_direct(x, np.s_[a:b], np.s_[k:k + b - a])
                 out[n] = x
         return {n: out[n] for n in names}
@@ -688,11 +690,18 @@ class FrameDataset(torch.utils.data.Dataset):
         with no rows copied: a batch reads the rows of its items' whole sequences from the
         file (kept until a batch needs others), so memory holds one block of sequences under
         :class:`BlockLoader`. ``inputs`` and ``targets`` are empty."""
+        ds = cls._shell(cache, groups_in, groups_out, indices)
+        ds.stream = _Stream(cache, [*groups_in, *groups_out], stats)
+        return ds
+
+    @classmethod
+    def _shell(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
+               indices: np.ndarray) -> FrameDataset:
+        """A dataset over ``indices`` with no rows yet (``inputs``, ``targets`` empty)."""
         ds = cls.__new__(cls)
         ds.indices = np.asarray(indices, dtype=np.int64)
         ds.cache, ds.groups_in, ds.groups_out = cache, list(groups_in), list(groups_out)
-        ds.inputs, ds.targets = {}, {}
-        ds.stream = _Stream(cache, [*groups_in, *groups_out], stats)
+        ds.inputs, ds.targets, ds.stream = {}, {}, None
         return ds
 
     def item_sequences(self) -> np.ndarray:
@@ -708,13 +717,7 @@ class FrameDataset(torch.utils.data.Dataset):
         group: once every set has copied a group's rows the cache forgets the group
         (:meth:`FeatureCache.release`), so memory holds the datasets' copies and one group at
         a time, not the copies and the whole cache side by side."""
-        out = []
-        for rows in index_sets:
-            ds = cls.__new__(cls)
-            ds.indices, ds.inputs, ds.targets = np.asarray(rows, dtype=np.int64), {}, {}
-            ds.cache, ds.groups_in, ds.groups_out = cache, list(groups_in), list(groups_out)
-            ds.stream = None
-            out.append(ds)
+        out = [cls._shell(cache, groups_in, groups_out, rows) for rows in index_sets]
         for g in dict.fromkeys([*groups_in, *groups_out]):
             for ds in out:
                 x = _normalized(cache, g, ds.indices, stats)
@@ -910,10 +913,7 @@ class BlockLoader:
                 ahead = pool.submit(stream.read, plan[0][0]) if plan else None
                 for k, (_, batches) in enumerate(plan):
                     assert ahead is not None
-                    block = ahead.result()
-                    stream.data = {}  # let the previous block go first
-                    stream.put(block)
-                    del block
+                    stream.put(ahead.result())  # the previous block is let go
                     ahead = pool.submit(stream.read, plan[k + 1][0]) if k + 1 < len(plan) \
                         else None
                     for b in batches:

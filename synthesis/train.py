@@ -191,9 +191,9 @@ class TrainConfig:
             batches need them, N rows of whole sequences at a time
             (:class:`couch.synthesis.data.BlockLoader`), so memory holds two blocks (the one
             served and the next, read ahead) instead of the rows (5.2 GB for the ``cpu``
-            PoseNet on 300k rows). Shuffling then mixes rows
-            within a block of sequences in random order, not across the whole data, so the
-            batches (and the trained weights) differ from an in-memory run's; the one
+            PoseNet on 300k rows). Shuffling then mixes rows within a block of sequences in
+            random order, not across the whole data, so the batches (and the trained
+            weights) differ from an in-memory run's; the one
             streamed PoseNet measured synthesised worse than its in-memory twin (README,
             *Training*), so stream only when the rows do not fit. ContactNet's samples (one
             per sequence and contact set) are always in memory.
