@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.distance import pdist
-from scipy.stats import bootstrap
+
+from couch.stats import bootstrap_interval
 
 if TYPE_CHECKING:
     from couch.augment import SignedDistanceGrid
@@ -148,18 +149,6 @@ def contact_precision(distances: np.ndarray,
     return {k: float(v) for k, v in zip(ks, hits.mean(axis=1), strict=True)}
 
 
-def _interval(statistic: Callable[[np.ndarray], float], trials: int, level: float,
-              resamples: int, seed: int) -> tuple[float, float]:
-    """Percentile bootstrap interval of ``statistic(trial indices)`` over ``trials`` trials
-    drawn with replacement (NaN, NaN when there are fewer than two trials)."""
-    if trials < 2:
-        return math.nan, math.nan
-    ci = bootstrap((np.arange(trials),), statistic, vectorized=False, n_resamples=resamples,
-                   confidence_level=level, method="percentile",
-                   rng=np.random.default_rng(seed)).confidence_interval
-    return float(ci.low), float(ci.high)
-
-
 def contact_intervals(distances: Mapping[str, np.ndarray], reference: str | None = None, *,
                       threshold: float = 0.05, level: float = 0.95, resamples: int = 2000,
                       seed: int = 0) -> dict[str, dict[str, tuple[float, float, float]]]:
@@ -200,7 +189,8 @@ def contact_intervals(distances: Mapping[str, np.ndarray], reference: str | None
         return out
 
     every = np.arange(n)
-    return {m: {k: (f(every), *_interval(f, n, level, resamples, seed))
+    return {m: {k: (f(every), *bootstrap_interval(f, n, level=level, resamples=resamples,
+                                                        seed=seed))
                 for k, f in stats(m).items()} for m in d}
 
 

@@ -131,6 +131,28 @@ def test_accuracy_bench_pools_f1_and_checks_its_arguments():
     assert len({name for name, _ in accuracy.SESSIONS}) == len(accuracy.SESSIONS)
 
 
+def test_accuracy_bench_gives_f1_an_interval_over_sessions():
+    """``f1_intervals``: sessions resampled, their counts pooled. Sessions that agree give a
+    tight interval around the pooled F1; one bad session among good ones widens it towards
+    its own F1; one session or a bad shape gives no interval."""
+    good = np.array([[9, 0, 1], [10, 0, 0]])  # (parts, 3): F1 0.947, 1.0
+    same = np.stack([good] * 6)
+    ci = accuracy.f1_intervals(same)
+    pooled = accuracy.f1_score(same.sum(0))
+    np.testing.assert_allclose(ci[:, 0], pooled)
+    np.testing.assert_allclose(ci[:, 1], pooled)
+    mixed = np.concatenate([same, [[[2, 0, 8], [10, 0, 0]]]])  # one session misses a hand
+    ci = accuracy.f1_intervals(mixed, seed=3)
+    pooled = accuracy.f1_score(mixed.sum(0))
+    assert ci[0, 0] < pooled[0] < ci[0, 1] < 0.95
+    assert ci[0, 0] < 0.85
+    np.testing.assert_allclose(ci[1], [1.0, 1.0])
+    np.testing.assert_array_equal(accuracy.f1_intervals(mixed, seed=3), ci)  # seeded
+    assert np.isnan(accuracy.f1_intervals(good[None])).all()
+    with pytest.raises(ValueError, match="sessions, parts, 3"):
+        accuracy.f1_intervals(good)
+
+
 def test_accuracy_bench_tells_late_contacts_from_missed_ones():
     """Where the wrong contact frames lie: one frame off a true contact's start or end
     (``edge_errors``) or not, and which true contacts were found at all (``episode_counts``)."""

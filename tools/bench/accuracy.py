@@ -5,7 +5,9 @@ levels". This simulates such a set (:data:`SESSIONS`: every chair kind, every in
 sensor noise 0.5-1.5x, 4 cameras with binned depth, no colour), processes each with nothing
 given (our calibration, sync, fits, chair registration; the cache ignored), and prints per
 session and pooled over all of them: the chair's rotation, centre and worst-vertex error, its
-chamfer, the body's MPJPE, contact F1 per part (frames of all sessions pooled), how far each
+chamfer, the body's MPJPE, contact F1 per part (frames of all sessions pooled, with a 95 %
+bootstrap interval over the sessions: :func:`f1_intervals`; a hand has a few dozen true contact
+frames in eight sessions, so one session moves its F1 by several points), how far each
 part's distance to the chair is off where the true part is near it (:func:`distance_errors`),
 where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
 :func:`edge_errors`) and how many true contacts were found at all (:func:`episode_counts`),
@@ -14,7 +16,8 @@ rigid transform that maps our camera centres onto the true ones, so the calibrat
 in every number.
 
 Run: ``python -m couch.tools.bench.accuracy [-o DIR] [--sessions N] [--fps F] [--duration S]
-[--threads K]``. A session takes about 3 min to simulate and process at 15 fps, 8 s.
+[--threads K] [--seed-offset K [K ...]]`` (several offsets pool their sessions). A session
+takes about 1-3 min to simulate and process at 15 fps, 8 s.
 """
 
 from __future__ import annotations
@@ -46,9 +49,10 @@ from couch.fitting import (
 from couch.geometry import apply_transform, fit_rigid_transform
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
+from couch.stats import bootstrap_interval
 
 __all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "edge_errors",
-           "episode_counts", "session_accuracy", "truth_from_ours"]
+           "episode_counts", "f1_intervals", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 3).
@@ -201,6 +205,20 @@ def f1_score(counts: np.ndarray) -> np.ndarray:
     return np.where(tp + fp + fn > 0, 2 * tp / np.maximum(2 * tp + fp + fn, 1), 1.0)
 
 
+def f1_intervals(counts: np.ndarray, *, level: float = 0.95, resamples: int = 2000,
+                 seed: int = 0) -> np.ndarray:
+    """(K,2) bootstrap interval (low, high) of each part's pooled F1, from (S,K,3) true
+    positive, false positive, false negative counts of S sessions: sessions are resampled
+    with replacement and their counts pooled (a session's frames are not independent of each
+    other, so the session is the unit). NaN with fewer than two sessions."""
+    c = np.asarray(counts, np.int64)
+    if c.ndim != 3 or c.shape[2] != 3:
+        raise ValueError(f"f1_intervals: counts must be (sessions, parts, 3), got {c.shape}")
+    return np.array([bootstrap_interval(lambda i, k=k: float(f1_score(c[i, k].sum(0))),
+                                        len(c), level=level, resamples=resamples, seed=seed)
+                     for k in range(c.shape[1])]).reshape(c.shape[1], 2)
+
+
 def truth_from_ours(result: PipelineResult, info: dict[str, Any]) -> np.ndarray:
     """(4,4) our world → the simulator's world, from the cameras' centres (``info``: the
     session's truth.json)."""
@@ -293,9 +311,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per session")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
-    ap.add_argument("--seed-offset", type=int, default=0,
+    ap.add_argument("--seed-offset", type=int, nargs="+", default=[0],
                     help="add this to every session's simulator seed: the same kinds of "
-                         "session on other draws (held out from whatever was tuned on these)")
+                         "session on other draws (held out from whatever was tuned on these); "
+                         "several offsets pool their sessions")
     args = ap.parse_args(argv)
     if not 1 <= args.sessions <= len(SESSIONS):
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
@@ -304,21 +323,24 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[SessionAccuracy] = []
     failed: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
-        work = args.output or Path(tmp)
-        if args.seed_offset:  # a kept folder is re-used by session name: other draws, other names
-            work = work / f"seed{args.seed_offset:+d}"
-        work.mkdir(parents=True, exist_ok=True)
-        for name, settings in SESSIONS[:args.sessions]:
-            t0 = time.perf_counter()
-            settings = dict(settings, seed=settings["seed"] + args.seed_offset)
-            a = _one(name, settings, work, args.fps, args.duration)
-            if isinstance(a, str):
-                failed.append(name)
-                print(f"[{name}] {a}", flush=True)
-                continue
-            print(a.line(name) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
-            rows.append(a)
-    print(f"\n{len(rows)} sessions (seed offset {args.seed_offset}), {args.fps:g} fps, "
+        for offset in args.seed_offset:
+            work = args.output or Path(tmp)
+            if offset:  # a kept folder is re-used by session name: other draws, other names
+                work = work / f"seed{offset:+d}"
+            work.mkdir(parents=True, exist_ok=True)
+            for name, settings in SESSIONS[:args.sessions]:
+                t0 = time.perf_counter()
+                label = f"{name}{offset:+d}" if offset else name
+                a = _one(name, dict(settings, seed=settings["seed"] + offset), work, args.fps,
+                         args.duration)
+                if isinstance(a, str):
+                    failed.append(label)
+                    print(f"[{label}] {a}", flush=True)
+                    continue
+                print(a.line(label) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+                rows.append(a)
+    offsets = ", ".join(str(o) for o in args.seed_offset)
+    print(f"\n{len(rows)} sessions (seed offset {offsets}), {args.fps:g} fps, "
           f"{args.duration:g} s each "
           f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})"
           + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
@@ -328,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     edges = np.sum([a.edges for a in rows], axis=0)
     episodes = np.sum([a.episodes for a in rows], axis=0)
     pooled = f1_score(counts)
+    spread = f1_intervals(np.stack([a.contacts for a in rows]))
     plain = [a for a in rows if not a.chair_ambiguous]
     if plain:
         print(f"chair: worst vertex {max(a.chair_mm for a in plain):.2f} mm, rotation "
@@ -344,7 +367,9 @@ def main(argv: list[str] | None = None) -> int:
         near = (f"distance to the chair off by {_cm(err)} mean, {_cm(err, 90)} 90th percentile "
                 f"over the {len(err)} frames it is truly under {100 * NEAR_CHAIR:g} cm"
                 if len(err) else f"never truly under {100 * NEAR_CHAIR:g} cm from the chair")
-        print(f"contact {n:<10} F1 {pooled[k]:.3f} (tp/fp/fn {tp}/{fp}/{fn}; wrong frames "
+        ci = (f" [{spread[k, 0]:.3f}, {spread[k, 1]:.3f}]" if np.isfinite(spread[k]).all()
+              else "")
+        print(f"contact {n:<10} F1 {pooled[k]:.3f}{ci} (tp/fp/fn {tp}/{fp}/{fn}; wrong frames "
               f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
               f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
               f"{near}")
