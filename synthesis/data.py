@@ -15,7 +15,8 @@ Pipeline (``couch-train`` drives it through :mod:`couch.synthesis.train`):
    ``__getitems__`` so a ``DataLoader`` slices whole batches out of numpy arrays instead of
    collating rows one by one; use them with ``collate_fn=`` :func:`collate_batch`. Built
    streamed (:meth:`FrameDataset.streamed`, ``WindowDataset(stream=True)``) they copy
-   nothing and read rows from ``features.h5`` a block of whole sequences at a time, served
+   nothing and read rows from ``features.h5`` a block at a time (pieces of HDF5-chunk size
+   from all over the data when shuffled), served
    by a :class:`BlockLoader` (:func:`make_loader` picks the loader).
 
 Cache layout (``features.h5``): one dataset per feature group, (N_total, dim) float32, the rows
@@ -79,6 +80,9 @@ __all__ = [
 ]
 
 #: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
+#: Rows per HDF5 chunk of the cache's row groups; a streamed block is made of pieces this long
+#: (:class:`BlockLoader`), so a piece is read as one chunk of each group.
+CHUNK_ROWS = 256
 CACHE_FORMAT = 5  # 2: chairs in the canonical chair frame; 3: global_phase_update;
 # 4: goal_relative_root relative to the goal root; 5: control_root_positions
 #: Groups that hold the same value on every row of a sequence; stored once per sequence.
@@ -431,7 +435,7 @@ def build_cache(refs: Sequence[SequenceRef], out_path: str | os.PathLike,
                 if name not in h5:
                     # Resizable so sequences can be appended without holding all in memory.
                     h5.create_dataset(name, shape=(0, x.shape[1]), maxshape=(None, x.shape[1]),
-                                      dtype=np.float32, chunks=(256, x.shape[1]),
+                                      dtype=np.float32, chunks=(CHUNK_ROWS, x.shape[1]),
                                       compression="gzip", compression_opts=1, shuffle=True)
                 ds = h5[name]
                 if ds.shape[1] != x.shape[1]:
@@ -595,17 +599,17 @@ def _normalized(cache: FeatureCache, name: str, rows: np.ndarray,
     return _apply_stats(name, cache.rows(name, rows), stats)
 
 
-#: A streamed dataset's block: (sorted sequences, their global rows, group -> normalised rows).
-_Block = tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]
+#: A streamed dataset's block: (its sorted global rows, group -> normalised rows).
+_Block = tuple[np.ndarray, dict[str, np.ndarray]]
 
 
 class _Stream:
-    """A streamed dataset's rows: the normalised rows of the whole sequences its current
-    batches need, read from the cache file (:meth:`FeatureCache.read`) when they change;
-    nothing else of the groups is held.
+    """A streamed dataset's rows: the normalised rows its current batches need, read from the
+    cache file (:meth:`FeatureCache.read`) when they change; nothing else of the groups is
+    held.
 
     Attributes:
-        sequences: (k,) sorted sequence indices whose rows are held.
+        rows: (k,) sorted global rows held.
         local: (N_total,) int64 position of each global row in the held arrays (-1: not held).
         data: group -> (rows held, dim) float32, normalised.
         reads: how many times rows were read (diagnostics and tests).
@@ -614,46 +618,45 @@ class _Stream:
     def __init__(self, cache: FeatureCache, groups: Sequence[str],
                  stats: FeatureStats | None) -> None:
         self.cache, self.groups, self.stats = cache, list(dict.fromkeys(groups)), stats
-        self.sequences = np.zeros(0, dtype=np.int64)
+        self.rows = np.zeros(0, dtype=np.int64)
         self.local = np.full(cache.num_rows, -1, dtype=np.int64)
         self.data: dict[str, np.ndarray] = {}
         self.reads = 0
 
-    def read(self, sequences: Iterable[int]) -> _Block:
-        """(sorted sequences, their global rows, group -> normalised rows) read from the file;
-        changes nothing held, so a helper thread can read the next block (:meth:`put` it)."""
-        seqs = np.unique(np.fromiter(sequences, dtype=np.int64))
-        rows = self.cache.sequence_rows(seqs)
+    def read(self, rows: np.ndarray) -> _Block:
+        """(sorted unique rows, group -> their normalised values) read from the file; changes
+        nothing held, so a helper thread can read the next block (:meth:`put` it)."""
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
         raw = self.cache.read(self.groups, rows)
-        return seqs, rows, {g: _apply_stats(g, raw.pop(g), self.stats) for g in self.groups}
+        return rows, {g: _apply_stats(g, raw.pop(g), self.stats) for g in self.groups}
 
     def put(self, block: _Block) -> None:
         """Hold a block :meth:`read` returned (the previous one is let go)."""
-        seqs, rows, self.data = block
+        rows, self.data = block
         self.local.fill(-1)
         self.local[rows] = np.arange(len(rows))
-        self.sequences = seqs
+        self.rows = rows
         self.reads += 1
 
-    def hold(self, sequences: Iterable[int]) -> None:
-        """Read and hold the rows of exactly these sequences (the previous ones are let go)."""
-        seqs = np.unique(np.fromiter(sequences, dtype=np.int64))
-        if np.array_equal(seqs, self.sequences):
+    def hold(self, rows: np.ndarray) -> None:
+        """Read and hold exactly these rows (the previous ones are let go)."""
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        if np.array_equal(rows, self.rows):
             return
         self.data = {}  # let the previous block go before reading the next
-        self.put(self.read(seqs))
+        self.put(self.read(rows))
 
     def release(self) -> None:
         """Let the held rows go (the next batch reads its own)."""
-        self.data, self.sequences = {}, np.zeros(0, dtype=np.int64)
+        self.data, self.rows = {}, np.zeros(0, dtype=np.int64)
         self.local.fill(-1)
 
     def take(self, rows: np.ndarray) -> dict[str, np.ndarray]:
-        """group -> rows.shape + (dim,) normalised values at the given global rows (their
-        sequences are read first when not all held)."""
+        """group -> rows.shape + (dim,) normalised values at the given global rows (the whole
+        sequences they lie in are read first when not all are held: an item taken alone)."""
         idx = self.local[rows]
         if (idx < 0).any():
-            self.hold(self.cache.row_sequence[rows.reshape(-1)])
+            self.hold(self.cache.sequence_rows(np.unique(self.cache.row_sequence[rows])))
             idx = self.local[rows]
         return {g: v[idx] for g, v in self.data.items()}
 
@@ -687,9 +690,9 @@ class FrameDataset(torch.utils.data.Dataset):
     def streamed(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
                  indices: np.ndarray, stats: FeatureStats | None = None) -> FrameDataset:
         """The same items as ``FrameDataset(cache, groups_in, groups_out, indices, stats)``
-        with no rows copied: a batch reads the rows of its items' whole sequences from the
-        file (kept until a batch needs others), so memory holds one block of sequences under
-        :class:`BlockLoader`. ``inputs`` and ``targets`` are empty."""
+        with no rows copied: :class:`BlockLoader` reads a block of rows from the file at a
+        time and serves its batches (an item taken alone reads its whole sequence), so memory
+        holds a block, not the dataset. ``inputs`` and ``targets`` are empty."""
         ds = cls._shell(cache, groups_in, groups_out, indices)
         ds.stream = _Stream(cache, [*groups_in, *groups_out], stats)
         return ds
@@ -704,9 +707,9 @@ class FrameDataset(torch.utils.data.Dataset):
         ds.inputs, ds.targets, ds.stream = {}, {}, None
         return ds
 
-    def item_sequences(self) -> np.ndarray:
-        """(len,) int64 the sequence each item's row belongs to."""
-        return self.cache.row_sequence[self.indices]
+    def item_rows(self, items: np.ndarray) -> np.ndarray:
+        """(len(items), 1) int64 the global rows items need (one row each)."""
+        return self.indices[np.asarray(items, dtype=np.int64)][:, None]
 
     @classmethod
     def splits(cls, cache: FeatureCache, groups_in: Sequence[str], groups_out: Sequence[str],
@@ -768,7 +771,7 @@ class WindowDataset(torch.utils.data.Dataset):
             order (e.g. a :class:`FrameDataset`'s inputs and targets over the same rows): used
             as they are, not copied, so PoseNet's closed-loop windows share its training
             rows' memory. None: copied from the cache.
-        stream: copy nothing; a batch reads its windows' whole sequences from the file, as
+        stream: copy nothing; rows are read from the file a block at a time, as
             :meth:`FrameDataset.streamed` (serve it with :class:`BlockLoader`).
     """
 
@@ -820,9 +823,9 @@ class WindowDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.starts)
 
-    def item_sequences(self) -> np.ndarray:
-        """(len,) int64 the sequence each window lies in."""
-        return self.cache.row_sequence[self.starts]
+    def item_rows(self, items: np.ndarray) -> np.ndarray:
+        """(len(items), window) int64 the global rows items need (each window's rows)."""
+        return self.starts[np.asarray(items, dtype=np.int64)][:, None] + np.arange(self.window)
 
     def _take(self, starts: np.ndarray) -> dict[str, torch.Tensor]:
         rows = starts[:, None] + np.arange(self.window)  # (B, window) global rows
@@ -839,32 +842,35 @@ class WindowDataset(torch.utils.data.Dataset):
 
 
 class BlockLoader:
-    """Batches of a streamed :class:`FrameDataset` or :class:`WindowDataset`, a block of
-    whole sequences at a time (in place of a ``DataLoader``, which would read a batch's rows
-    from all over the file).
+    """Batches of a streamed :class:`FrameDataset` or :class:`WindowDataset`, a block of rows
+    at a time (in place of a ``DataLoader``, which would read a batch's rows from all over the
+    file).
 
-    An epoch takes the dataset's sequences in order (``shuffle``: in a random order drawn
-    from ``generator``) and groups them into blocks of at least ``block_rows`` cache rows (a
-    block is one file read, ~18 KB a row for PoseNet); the items of a block, with those left
-    over from the previous block when it did not end on a whole batch, are served in batches
-    of ``batch_size`` (``shuffle``: in random order). Every item comes once an epoch, in
-    ``ceil(len / batch_size)`` batches as from a ``DataLoader`` without ``drop_last``;
-    shuffling mixes items across ``block_rows`` rows rather than across the whole dataset.
-    While a block's batches are served the next block is read in a helper thread, so memory
-    holds two blocks.
+    The items are cut into *pieces* by where they start in the cache: the items starting in
+    the same ``piece_rows`` rows (by default one HDF5 chunk, :data:`CHUNK_ROWS`) are one
+    piece. An epoch takes the pieces in order (``shuffle``: in a random order drawn from
+    ``generator``) and groups them into blocks that need at least ``block_rows`` cache rows (a
+    block is one file read of one slice per run of rows, ~18 KB a row for PoseNet); the items
+    of a block, with those left over from the previous block when it did not end on a whole
+    batch, are served in batches of ``batch_size`` (``shuffle``: in random order). Every item
+    comes once an epoch, in ``ceil(len / batch_size)`` batches as from a ``DataLoader``
+    without ``drop_last``. Shuffled, a block of 16,384 rows mixes 64 pieces from all over the
+    data (whole sequences would be a few dozen of them, ~350 rows each); a batch still mixes
+    items from one block only. While a block's batches are served the next block is read in a
+    helper thread, so memory holds two blocks.
     """
 
     def __init__(self, dataset: FrameDataset | WindowDataset, batch_size: int,
                  block_rows: int, shuffle: bool = False,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, piece_rows: int = CHUNK_ROWS) -> None:
         if dataset.stream is None:
             raise ValueError("BlockLoader serves streamed datasets (FrameDataset.streamed, "
                              "WindowDataset(stream=True))")
-        if batch_size < 1 or block_rows < 1:
-            raise ValueError(f"batch_size and block_rows must be positive, got {batch_size} "
-                             f"and {block_rows}")
+        if batch_size < 1 or block_rows < 1 or piece_rows < 1:
+            raise ValueError(f"batch_size, block_rows and piece_rows must be positive, got "
+                             f"{batch_size}, {block_rows} and {piece_rows}")
         self.dataset, self.batch_size, self.block_rows = dataset, batch_size, block_rows
-        self.shuffle, self.generator = shuffle, generator
+        self.shuffle, self.generator, self.piece_rows = shuffle, generator, piece_rows
 
     def __len__(self) -> int:
         return -(-len(self.dataset) // self.batch_size)
@@ -875,30 +881,32 @@ class BlockLoader:
         return torch.randperm(n, generator=self.generator).numpy()
 
     def plan(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
-        """One epoch's order: [(sequences to hold, [item positions of each batch])] per block
-        (draws from ``generator`` when shuffling)."""
-        seq_of = self.dataset.item_sequences()
-        by_seq = np.argsort(seq_of, kind="stable")
-        seqs, first, counts = np.unique(seq_of[by_seq], return_index=True, return_counts=True)
-        lengths = self.dataset.cache.lengths()[seqs]
-        order = self._perm(len(seqs))
+        """One epoch's order: [(sorted rows to hold, [item positions of each batch])] per
+        block (draws from ``generator`` when shuffling)."""
+        n = len(self.dataset)
+        need = self.dataset.item_rows(np.arange(n))  # (n, k) rows each item needs
+        by_start = np.argsort(need[:, 0], kind="stable")
+        _, first, counts = np.unique(need[by_start, 0] // self.piece_rows, return_index=True,
+                                     return_counts=True)
+        pieces = [by_start[a:a + c] for a, c in zip(first.tolist(), counts.tolist(),
+                                                      strict=True)]
+        size = [len(np.unique(need[p])) for p in pieces]  # rows a piece needs
+        order = self._perm(len(pieces))
         out: list[tuple[np.ndarray, list[np.ndarray]]] = []
         carry = np.zeros(0, dtype=np.int64)
         block: list[int] = []
         rows = 0
         for k, j in enumerate(order.tolist()):
             block.append(j)
-            rows += int(lengths[j])
+            rows += size[j]
             if rows < self.block_rows and k + 1 < len(order):
                 continue
-            items = np.concatenate([carry, *[by_seq[first[b]:first[b] + counts[b]]
-                                             for b in block]])
+            items = np.concatenate([carry, *[pieces[b] for b in block]])
             items = items[self._perm(len(items))]
             last = k + 1 == len(order)
             full = len(items) if last else len(items) // self.batch_size * self.batch_size
-            hold = np.union1d(seqs[block], seq_of[carry])
-            out.append((hold, [items[i:i + self.batch_size]
-                               for i in range(0, full, self.batch_size)]))
+            out.append((np.unique(need[items]), [items[i:i + self.batch_size]
+                                                 for i in range(0, full, self.batch_size)]))
             carry, block, rows = items[full:], [], 0
         return out
 
@@ -925,7 +933,7 @@ class BlockLoader:
 def make_loader(dataset: torch.utils.data.Dataset, batch_size: int, shuffle: bool = False,
                 generator: torch.Generator | None = None, block_rows: int = 0) -> Iterable[Any]:
     """Batches of one of the datasets here: a :class:`BlockLoader` for a streamed one (blocks
-    of ``block_rows`` rows), else a ``DataLoader`` slicing whole batches
+    of ``block_rows`` rows made of chunk-sized pieces), else a ``DataLoader`` slicing whole batches
     (:func:`collate_batch`)."""
     if getattr(dataset, "stream", None) is not None:
         return BlockLoader(dataset, batch_size, block_rows, shuffle, generator)  # type: ignore[arg-type]

@@ -188,15 +188,15 @@ class TrainConfig:
         stride: ControlNet rows between window starts (0: window // 2).
         stream_rows: PoseNet, the baseline and ControlNet: 0 (default) copies the rows they
             train and validate on into memory; N > 0 reads them from ``features.h5`` as
-            batches need them, N rows of whole sequences at a time
-            (:class:`couch.synthesis.data.BlockLoader`), so memory holds two blocks (the one
-            served and the next, read ahead) instead of the rows (5.2 GB for the ``cpu``
-            PoseNet on 300k rows). Shuffling then mixes rows within a block of sequences in
-            random order, not across the whole data, so the batches (and the trained
-            weights) differ from an in-memory run's; the one
-            streamed PoseNet measured synthesised worse than its in-memory twin (README,
-            *Training*), so stream only when the rows do not fit. ContactNet's samples (one
-            per sequence and contact set) are always in memory.
+            batches need them, N rows at a time (:class:`couch.synthesis.data.BlockLoader`),
+            so memory holds two blocks (the one served and the next, read ahead) instead of
+            the rows (5.2 GB for the ``cpu`` PoseNet on 300k rows). Shuffling then mixes rows
+            within a block of 256-row pieces drawn from all over the data, not across the
+            whole data, so the batches (and the trained weights) differ from an in-memory
+            run's; the one streamed PoseNet measured (with blocks of whole sequences, before
+            the pieces) synthesised worse than its in-memory twin (README, *Training*), so
+            stream only when the rows do not fit. ContactNet's samples (one per sequence and
+            contact set) are always in memory.
         val_fraction: share of chairs (or sequences) held out for validation.
         split_by: "object" (held-out chairs when >= 3) or "sequence".
         network: the network's config (``ControlNetConfig`` etc.) as a plain dict.
@@ -1204,7 +1204,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--stream", type=int, nargs="?", const=STREAM_ROWS, default=None,
                    metavar="ROWS",
                    help="read the training rows from RUN/features.h5 as batches need them, "
-                        f"ROWS rows of whole sequences at a time (default {STREAM_ROWS}), "
+                        f"ROWS rows at a time (default {STREAM_ROWS}), "
                         "instead of copying them into memory (for data larger than memory; "
                         "shuffles within blocks, so the weights differ from an in-memory run's "
                         "and one measured run synthesised worse: README)")

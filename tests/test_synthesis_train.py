@@ -215,22 +215,26 @@ def test_streamed_frames_serve_the_in_memory_rows_a_block_at_a_time(trained):
     cache.release(cache.dims)
     streamed = FrameDataset.streamed(cache, groups_in, groups_out, rows, stats)
     assert len(streamed) == len(mem) and not streamed.inputs
-    lengths = cache.lengths()[train_seqs]
-    block, bs = int(lengths.min()) // 2, 7  # a block is one sequence: batches carry over
+    piece, block, bs = 16, 40, 7  # blocks of ~3 pieces; batches carry over between blocks
     loader = BlockLoader(streamed, bs, block, shuffle=True,
-                         generator=torch.Generator().manual_seed(3))
+                         generator=torch.Generator().manual_seed(3), piece_rows=piece)
     plan = loader.plan()
     batches = [b for _, bb in plan for b in bb]
-    assert len(plan) == len(train_seqs) and len(batches) == len(loader) == -(-len(mem) // bs)
+    assert len(plan) > 1
+    assert len(batches) == len(loader) == -(-len(mem) // bs)
     assert all(len(b) == bs for b in batches[:-1]) and 0 < len(batches[-1]) <= bs
     served = np.concatenate(batches)
     np.testing.assert_array_equal(np.sort(served), np.arange(len(mem)))  # each row once
     assert not np.array_equal(served, np.arange(len(mem)))  # shuffled
-    carried = 0
-    for hold, bb in plan:
+    seen: dict[int, int] = {}
+    carried, runs = 0, []
+    for k, (hold, bb) in enumerate(plan):
+        assert k + 1 == len(plan) or len(hold) >= block
+        runs.append(1 + int((np.diff(hold) != 1).sum()))
+        for p in np.unique(rows[np.concatenate(bb)] // piece):
+            carried += p in seen  # a piece split between two blocks: items carried over
+            seen[p] = k
         streamed.stream.hold(hold)
-        # a block holds its sequence and the sequences of the items carried into it
-        carried += len(hold) > 1
         for b in bb:
             x, y = streamed.__getitems__(b)
             ex, ey = mem.__getitems__(b)
@@ -239,19 +243,22 @@ def test_streamed_frames_serve_the_in_memory_rows_a_block_at_a_time(trained):
             for g in groups_out:
                 assert torch.equal(y[g], ey[g])
     assert carried > 0
+    # shuffled pieces: a block's rows come from several places in the file, not one run
+    assert np.mean(runs) > 1.5
     assert streamed.stream.reads == len(plan)  # no batch read outside its block
     assert not set(cache.dims) & set(cache._data)  # the cache kept no group
     # the loader itself: reproducible from the generator's seed; lets its block go after
     def epoch(seed):
         gen = torch.Generator().manual_seed(seed)
-        return torch.cat([x["joint_positions"] for x, _ in BlockLoader(streamed, bs, block,
-                                                                        True, gen)])
+        return torch.cat([x["joint_positions"] for x, _ in BlockLoader(
+            streamed, bs, block, True, gen, piece_rows=piece)])
     first = epoch(5)
     assert torch.equal(first, epoch(5)) and not torch.equal(first, epoch(6))
     assert not streamed.stream.data and len(first) == len(mem)
     # ... and serves, block after block read ahead in a helper thread, the rows its plan says
     order = np.concatenate([b for _, bb in BlockLoader(
-        streamed, bs, block, True, torch.Generator().manual_seed(5)).plan() for b in bb])
+        streamed, bs, block, True, torch.Generator().manual_seed(5), piece_rows=piece).plan()
+        for b in bb])
     np.testing.assert_array_equal(first.numpy(), mem.inputs["joint_positions"][order])
     # any item alone reads what it needs
     i = len(mem) // 3
