@@ -79,10 +79,10 @@ __all__ = [
     "stack_groups",
 ]
 
-#: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
 #: Rows per HDF5 chunk of the cache's row groups; a streamed block is made of pieces this long
 #: (:class:`BlockLoader`), so a piece is read as one chunk of each group.
 CHUNK_ROWS = 256
+#: Bumped whenever the cache layout or the feature code changes in a way old caches miss.
 CACHE_FORMAT = 5  # 2: chairs in the canonical chair frame; 3: global_phase_update;
 # 4: goal_relative_root relative to the goal root; 5: control_root_positions
 #: Groups that hold the same value on every row of a sequence; stored once per sequence.
@@ -854,8 +854,8 @@ class BlockLoader:
     of a block, with those left over from the previous block when it did not end on a whole
     batch, are served in batches of ``batch_size`` (``shuffle``: in random order). Every item
     comes once an epoch, in ``ceil(len / batch_size)`` batches as from a ``DataLoader``
-    without ``drop_last``. Shuffled, a block of 16,384 rows mixes 64 pieces from all over the
-    data (whole sequences would be a few dozen of them, ~350 rows each); a batch still mixes
+    without ``drop_last``. Shuffled, a block of 16,384 rows mixes about 64 pieces from all over
+    the data (whole sequences would be a few dozen of them, ~350 rows each); a batch still mixes
     items from one block only. While a block's batches are served the next block is read in a
     helper thread, so memory holds two blocks.
     """
@@ -933,8 +933,8 @@ class BlockLoader:
 def make_loader(dataset: torch.utils.data.Dataset, batch_size: int, shuffle: bool = False,
                 generator: torch.Generator | None = None, block_rows: int = 0) -> Iterable[Any]:
     """Batches of one of the datasets here: a :class:`BlockLoader` for a streamed one (blocks
-    of ``block_rows`` rows made of chunk-sized pieces), else a ``DataLoader`` slicing whole batches
-    (:func:`collate_batch`)."""
+    of ``block_rows`` rows made of chunk-sized pieces), else a ``DataLoader`` slicing whole
+    batches (:func:`collate_batch`)."""
     if getattr(dataset, "stream", None) is not None:
         return BlockLoader(dataset, batch_size, block_rows, shuffle, generator)  # type: ignore[arg-type]
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=shuffle,
