@@ -99,8 +99,8 @@ PRESETS: tuple[str, ...] = ("paper", "cpu", "ci")
 TEACHER_ALWAYS = 1e9
 #: Where PoseNet's control input comes from (``TrainConfig.control_source``).
 CONTROL_SOURCES: tuple[str, ...] = ("data", "controlnet")
-#: ``couch-train --stream``'s rows per block: ~300 MB of PoseNet's rows, ~45 simulated
-#: sequences mixed in each block's batches.
+#: ``couch-train --stream``'s rows per block: ~300 MB of PoseNet's rows, about 64 pieces of
+#: 256 rows from all over the data mixed in each block's batches.
 STREAM_ROWS = 16384
 #: The training process's peak memory while the in-memory datasets are built, over the
 #: bytes of their rows (PoseNet's on 857 sequences: 9.64 GB peak for 5.17 GB of rows,
