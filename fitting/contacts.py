@@ -83,7 +83,9 @@ class ContactConfig:
 
     The defaults were chosen on simulated motions (tests/test_fitting_contacts.py). Contact
     flags enter at 2 cm, the distance at which COUCH-style annotation (and the simulator's
-    truth) calls a part touching, and leave at 3 cm: wider hysteresis or longer minimum
+    truth) calls a part touching, and leave at 2.5 cm (3 cm while the simulator's held palms
+    hovered up to 1.7 cm off the chair; with them resting on it, the wider band held unplanned
+    hands lingering 2-3 cm from an armrest after a brush): wider hysteresis or longer minimum
     durations steady the flags of a noisy fit but lose the many short hand contacts (a palm
     lands, takes weight for a fraction of a second and lifts). The speed gate (0.5 / 1 m/s)
     only rejects parts passing by: a landing palm still moves a little when it first touches.
@@ -93,7 +95,7 @@ class ContactConfig:
     """
 
     enter_distance: float = 0.02  # m: a part may start touching closer than this ...
-    leave_distance: float = 0.03  # m: ... and stops touching farther than this
+    leave_distance: float = 0.025  # m: ... and stops touching farther than this
     enter_speed: float = 0.5  # m/s: ... and may start touching only slower than this
     leave_speed: float = 1.0  # m/s: ... and stops touching faster than this
     # Smoothing is as strong as the motion's own per-frame noise asks (see :func:`motion_noise`):

@@ -44,9 +44,15 @@ INTERACTION_MIX = {"right_hand": 0.173, "left_hand": 0.140, "both_hands": 0.289,
                    "no_contact": 0.174, "free": 0.152, "locomotion": 0.072}
 
 DENSE_HZ = 120.0
-# How far the palm centre is held above a contact point: fingers and thumb reach a little below
-# the palm's plane, and the ground-truth contact threshold (2 cm) still counts it as touching.
+# How far the palm centre is first held above a contact point: fingers and thumb reach a little
+# below the palm's plane. Only a first guess: how far the hand really is from the chair depends on
+# the surface's curvature and the hand's tilt (measured 0.0-1.7 cm, some hands sunk into the
+# chair), so each held palm is then moved along the contact normal until its closest vertex rests
+# ``TOUCH_GAP`` above the surface (:func:`_palm_gaps`).
 PALM_HOVER = 0.016
+# Where a resting palm's closest contact vertex ends up: on the surface, not pressed into it (the
+# body model is rigid) and not hovering near the ground truth's 2 cm contact line.
+TOUCH_GAP = 0.003
 J = JOINT_INDEX
 
 
@@ -489,12 +495,12 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
     offset = np.zeros((len(time), 3))
     motion = _solve(*args, offset)
     # Re-solves keep the palm targets and their timing; only the body settles.
-    fixed = {side: (part, point, None, t_on, t_off) for side, (t_on, t_off, point, part)
-             in motion.hand_contacts.items()}
-    for side, (part, point, _, t_on, t_off) in fixed.items():
+    fixed = {side: (part, point, None, t_on, t_off, PALM_HOVER) for side, (t_on, t_off, point,
+             part) in motion.hand_contacts.items()}
+    for side, (part, point, _, t_on, t_off, hover) in fixed.items():
         normal = next(nrm for p, pt, nrm in hand_plan[side] if p == part and np.allclose(
             pt, point))
-        fixed[side] = (part, point, normal, t_on, t_off)
+        fixed[side] = (part, point, normal, t_on, t_off, hover)
     if chair_mesh is not None and sit:
         # Settle the body out of the chair: push the pelvis along the surface normal at the
         # deepest penetration, re-solve the limbs, repeat.
@@ -504,6 +510,21 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
                 break
             offset = np.clip(offset + push, -0.1, 0.1)
             motion = _solve(*args, offset, fixed or None)
+        # Rest each held palm on the chair: the hover that puts its closest vertex TOUCH_GAP
+        # above the surface. Further passes absorb what the re-solved arm, wrist and shared
+        # torso bend change (two hands move each other); the closest pass is kept.
+        best, best_miss = motion, np.inf
+        for k in range(7 if fixed else 0):
+            gaps = _palm_gaps(collision_model or model, motion, chair_mesh)
+            miss = max(abs(g - TOUCH_GAP) for g in gaps.values())
+            if miss < best_miss:
+                best, best_miss = motion, miss
+            if miss < 0.001 or k == 6:
+                break
+            fixed = {side: (*f[:5], float(np.clip(f[5] - (gaps[side] - TOUCH_GAP), -0.02, 0.05)))
+                     for side, f in fixed.items()}
+            motion = _solve(*args, offset, fixed)
+        motion = best
         depth = max_penetration(collision_model or model, motion, chair_mesh)
         if depth > cfg.max_penetration:
             raise MotionRejected(f"the body passes {100 * depth:.1f} cm into the chair "
@@ -524,6 +545,28 @@ def max_penetration(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarr
         v = model(betas=motion.betas[None], global_orient=go, body_pose=bp,
                   transl=tr).vertices.numpy()
     return float(penetration_depth(v, *chair_mesh).max())
+
+
+def _palm_gaps(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
+               hz: float = 30.0) -> dict[str, float]:
+    """Per held palm (side → m): the median over its hold (``t_on`` to ``t_off``, sampled at
+    ``hz``) of its contact vertices' smallest signed distance to the watertight chair (negative
+    inside), i.e. how far the hand's closest point is above the surface."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(chair_mesh[0].astype(np.float32)),
+                        o3d.core.Tensor(chair_mesh[1].astype(np.uint32)))
+    out = {}
+    for side, (t_on, t_off, _point, _part) in motion.hand_contacts.items():
+        ts = np.arange(t_on, max(t_off, t_on + 1e-6), 1.0 / hz)
+        go, bp, tr, _ = motion.sample(ts)
+        with torch.no_grad():
+            v = model(betas=motion.betas[None], global_orient=go, body_pose=bp,
+                      transl=tr).vertices[:, model.contact_vertices[f"{side}_hand"]].numpy()
+        # a majority vote of 5 rays, as penetration_depth: one ray grazing an edge miscounts
+        sd = scene.compute_signed_distance(o3d.core.Tensor(v.reshape(-1, 3).astype(np.float32)),
+                                           nsamples=5).numpy().reshape(v.shape[:2])
+        out[side] = float(np.median(sd.min(axis=1)))
+    return out
 
 
 def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.ndarray, np.ndarray],
@@ -769,7 +812,7 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             fingers = normalize(along)
             rot_c = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]), fingers,
                           np.broadcast_to(-nrm, (n, 3)))
-            wrist_c = plan["point"] + PALM_HOVER * nrm - rot_c @ body.palm_offset[side]
+            wrist_c = plan["point"] + plan["hover"] * nrm - rot_c @ body.palm_offset[side]
             wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None] + _hand_arc(c)
             hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
             _, d_up, d_low, hinge = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
@@ -833,18 +876,19 @@ _PART_WEIGHT = {"armrest": 0.6, "seat": 0.4, "back": 0.0}
 
 
 def _contact_target(body: _Body, side: str, part: str, point: np.ndarray, normal: np.ndarray,
-                    n: int, hips: np.ndarray) -> dict:
+                    n: int, hips: np.ndarray, hover: float = PALM_HOVER) -> dict:
     """Wrist position (n,3) and hand rotation (n,3,3) that put the palm on ``point``, fingers
-    pointing away from the sitter's hips (``hips`` (3,)), as a supporting hand does."""
+    pointing away from the sitter's hips (``hips`` (3,)), as a supporting hand does; the palm
+    centre ``hover`` (m) above it along ``normal``."""
     sign = 1.0 if side == "left" else -1.0
     away = (point - hips) * np.array([1.0, 0.0, 1.0])
     f_dir = normalize(away) if np.linalg.norm(away) > 0.05 else np.array(
         [0.0, 0.0, -1.0 if part.endswith("back") else 1.0])
     rot = align(np.array([sign, 0, 0]), np.array([0, -1.0, 0]),
                 np.broadcast_to(f_dir, (n, 3)), np.broadcast_to(-normal, (n, 3)))
-    wrist = point + PALM_HOVER * normal - rot @ body.palm_offset[side]
+    wrist = point + hover * normal - rot @ body.palm_offset[side]
     return {"part": part, "point": point, "normal": normal, "wrist": wrist, "rot": rot,
-            "fingers": f_dir}
+            "fingers": f_dir, "hover": hover}
 
 
 def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray, np.ndarray]]],
@@ -903,8 +947,8 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
             _PART_WEIGHT[k] for k in shared))) if len(hand_plan) > 1 and shared else None)
         for side, candidates in hand_plan.items():
             if fixed is not None:
-                part, point, normal, t_on, t_off = fixed[side]
-                plan = _contact_target(body, side, part, point, normal, n, hips)
+                part, point, normal, t_on, t_off, hover = fixed[side]
+                plan = _contact_target(body, side, part, point, normal, n, hips, hover)
                 plan["t_on"], plan["t_off"] = t_on, t_off
                 c = smoothstep((time - (t_on - 0.5)) / 0.5) * (
                     1 - smoothstep((time - t_off) / 0.5))
