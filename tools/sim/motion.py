@@ -513,6 +513,7 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         # Rest each held palm on the chair: the hover that puts its closest vertex TOUCH_GAP
         # above the surface. Further passes absorb what the re-solved arm, wrist and shared
         # torso bend change (two hands move each other); the closest pass is kept.
+        settled = motion
         best, best_miss = motion, np.inf
         for k in range(7 if fixed else 0):
             gaps = _palm_gaps(collision_model or model, motion, chair_mesh)
@@ -526,6 +527,11 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
             motion = _solve(*args, offset, fixed)
         motion = best
         depth = max_penetration(collision_model or model, motion, chair_mesh)
+        if depth > cfg.max_penetration and motion is not settled:
+            # resting the palms put the hand (or a rolling palm) into the chair: keep them where
+            # they were rather than reject a draw that was plausible before
+            motion = settled
+            depth = max_penetration(collision_model or model, motion, chair_mesh)
         if depth > cfg.max_penetration:
             raise MotionRejected(f"the body passes {100 * depth:.1f} cm into the chair "
                                  f"(limit {100 * cfg.max_penetration:.1f} cm)")
