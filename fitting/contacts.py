@@ -84,11 +84,12 @@ class ContactConfig:
     The defaults were chosen on simulated motions (tests/test_fitting_contacts.py). Contact
     flags enter at 2 cm, the distance at which COUCH-style annotation (and the simulator's
     truth) calls a part touching, and leave at 2.5 cm (3 cm while the simulator's held palms
-    hovered up to 1.7 cm off the chair; with them resting on it, the wider band held unplanned
-    hands lingering 2-3 cm from an armrest after a brush): wider hysteresis or longer minimum
-    durations steady the flags of a noisy fit but lose the many short hand contacts (a palm
-    lands, takes weight for a fraction of a second and lifts). The speed gate (0.5 / 1 m/s)
-    only rejects parts passing by: a landing palm still moves a little when it first touches.
+    sat anywhere from inside the chair to a few cm off it; with them resting on it, the wider
+    band held unplanned hands lingering 2-3 cm from an armrest after a brush): wider hysteresis
+    or longer minimum durations steady the flags of a noisy fit but lose the many short hand
+    contacts (a palm lands, takes weight for a fraction of a second and lifts). The speed gate
+    (0.5 / 1 m/s) only rejects parts passing by: a landing palm still moves a little when it
+    first touches.
     The label's looser support test (5 / 7 cm, 0.2 s) tolerates an IMU-like fit's ~3.5 cm of
     hand error per frame and a session fit's palms, which sit 3-7 cm off the armrest they
     press on (the depth cameras barely see fingers).

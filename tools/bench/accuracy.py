@@ -55,7 +55,7 @@ __all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "edge
            "episode_counts", "f1_intervals", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
-#: flags enter at 2 cm and leave at 3).
+#: flags enter at 2 cm and leave at 2.5).
 NEAR_CHAIR = 0.04
 HANDS = (CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand"))
 

@@ -46,9 +46,9 @@ INTERACTION_MIX = {"right_hand": 0.173, "left_hand": 0.140, "both_hands": 0.289,
 DENSE_HZ = 120.0
 # How far the palm centre is first held above a contact point: fingers and thumb reach a little
 # below the palm's plane. Only a first guess: how far the hand really is from the chair depends on
-# the surface's curvature and the hand's tilt (measured 0.0-1.7 cm, some hands sunk into the
-# chair), so each held palm is then moved along the contact normal until its closest vertex rests
-# ``TOUCH_GAP`` above the surface (:func:`_palm_gaps`).
+# the surface's curvature and the hand's tilt (a hold's median measured -1.4 to 3.6 cm), so each
+# held palm is then moved along the contact normal until its closest vertex rests ``TOUCH_GAP``
+# above the surface (:func:`_palm_gaps`).
 PALM_HOVER = 0.016
 # Where a resting palm's closest contact vertex ends up: on the surface, not pressed into it (the
 # body model is rigid) and not hovering near the ground truth's 2 cm contact line.
