@@ -17,6 +17,7 @@ import torch
 
 from couch.body import load_body_model
 from couch.body.limits import joint_limit_excess_deg
+from couch.tools.sim import motion as sim_motion
 from couch.tools.sim.motion import INTERACTION_MIX, sample_interaction
 from couch.tools.sim.quality import foot_slide, penetration_depth
 from couch.tools.sim.session import simulate_motion_dataset, simulate_sequence
@@ -106,6 +107,39 @@ def test_held_palms_rest_on_the_chair(case, sequences, models):
         # forearm (seen: 1.2 cm above to 0.9 cm inside over 13 frames around a median of 0)
         rest = (gap > -0.01) & (gap < 0.015)
         assert rest.mean() > 0.8, (side, part, np.round(gap * 100, 2))
+
+
+def test_palms_rest_part_way_when_resting_them_goes_in(sequences, models, monkeypatch):
+    # When the rested palms would put the body past the penetration limit (forced here on the
+    # one draw of case 0, which is accepted at its first try), the palm rests part of the way
+    # down from where the plan put it, instead of staying there.
+    full, coarse = models
+    rested = sequences[0][2]
+    assert rested.rejected == 0
+    real_depth, real_gaps = sim_motion.max_penetration, sim_motion._palm_gaps
+    calls = []
+
+    def rested_goes_in(*args, **kwargs):
+        calls.append(1)
+        return 1.0 if len(calls) == 1 else real_depth(*args, **kwargs)
+
+    def draw():
+        seq = simulate_sequence(np.random.default_rng(CASES[0][2]), full, coarse,
+                                interaction=CASES[0][0], chair=CASES[0][1])
+        return real_gaps(coarse, seq.motion, (seq.chair.vertices, seq.chair.faces))["right"]
+
+    monkeypatch.setattr(sim_motion, "max_penetration", rested_goes_in)
+    part_way = draw()
+    monkeypatch.setattr(sim_motion, "max_penetration", real_depth)
+    monkeypatch.setattr(sim_motion, "_palm_gaps", lambda model, motion, mesh, hz=30.0: {
+        side: sim_motion.TOUCH_GAP for side in motion.hand_contacts})  # nothing to correct
+    planned = draw()
+    rest = real_gaps(coarse, rested.motion, (rested.chair.vertices, rested.chair.faces))["right"]
+    assert abs(rest - sim_motion.TOUCH_GAP) < 0.002
+    assert planned > rest + 0.002, (planned, rest)  # the plan's palm hovers above the rest ...
+    # ... and the first share tried, three quarters of the way down, is taken (measured: the
+    # plan 5.6 mm above, rested 3.0, part way 3.7)
+    assert rest < part_way < rest + 0.5 * (planned - rest), (rest, part_way, planned)
 
 
 def test_interaction_mix_follows_the_couch_dataset():

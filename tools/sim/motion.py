@@ -513,13 +513,13 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         # Rest each held palm on the chair: the hover that puts its closest vertex TOUCH_GAP
         # above the surface. Further passes absorb what the re-solved arm, wrist and shared
         # torso bend change (two hands move each other); the closest pass is kept.
-        settled = motion
-        best, best_miss = motion, np.inf
+        settled, planned = motion, fixed
+        best, best_fixed, best_miss = motion, fixed, np.inf
         for k in range(7 if fixed else 0):
             gaps = _palm_gaps(collision_model or model, motion, chair_mesh)
             miss = max(abs(g - TOUCH_GAP) for g in gaps.values())
             if miss < best_miss:
-                best, best_miss = motion, miss
+                best, best_fixed, best_miss = motion, fixed, miss
             if miss < 0.001 or k == 6:
                 break
             fixed = {side: (*f[:5], float(np.clip(f[5] - (gaps[side] - TOUCH_GAP), -0.02, 0.05)))
@@ -528,10 +528,19 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         motion = best
         depth = max_penetration(collision_model or model, motion, chair_mesh)
         if depth > cfg.max_penetration and motion is not settled:
-            # resting the palms put the hand (or a rolling palm) into the chair: keep them where
-            # they were rather than reject a draw that was plausible before
+            # Resting the palms put a hand (or a palm rolling with the forearm) into the chair.
+            # If the palms where the plan put them stay out, rest them part of the way (still
+            # touching where the plan asked), else keep them where the plan put them; if even
+            # those go in, the body does and the draw is rejected.
+            depth = max_penetration(collision_model or model, settled, chair_mesh)
             motion = settled
-            depth = max_penetration(collision_model or model, motion, chair_mesh)
+            for share in (0.75, 0.5, 0.25) if depth <= cfg.max_penetration else ():
+                part = _solve(*args, offset, {side: (*f[:5], planned[side][5] + share * (
+                    f[5] - planned[side][5])) for side, f in best_fixed.items()})
+                part_depth = max_penetration(collision_model or model, part, chair_mesh)
+                if part_depth <= cfg.max_penetration:
+                    motion = part
+                    break
         if depth > cfg.max_penetration:
             raise MotionRejected(f"the body passes {100 * depth:.1f} cm into the chair "
                                  f"(limit {100 * cfg.max_penetration:.1f} cm)")
