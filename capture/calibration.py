@@ -644,13 +644,23 @@ def level_with_floor(extrinsics: Extrinsics,
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel_m)
     best: tuple[int, np.ndarray] | None = None
     # the same recordings should give the same world: open3d's RANSAC draws from its own
-    # global generator, unseeded unless told
+    # global generator, unseeded unless told, and its threads stop early on whichever
+    # plane is good enough first, which depends on how busy the cores are (on a loaded
+    # machine 2 of 12 runs chose another floor, moving the world by ~1e-7 rad and the
+    # chair by 0.08 mm): one thread, so the draws are evaluated in order
     o3d.utility.random.seed(0)
+    threads = o3d.utility.get_max_threads()
     for _ in range(max_planes):
-        if len(pcd.points) < 100:
+        # a later plane comes from what is left: fewer points than the floor's inliers
+        # cannot hold a bigger floor
+        if len(pcd.points) < 100 or (best is not None and len(pcd.points) < best[0]):
             break
-        model, inl = pcd.segment_plane(distance_threshold=distance_m, ransac_n=3,
-                                       num_iterations=1000, probability=0.99999)
+        o3d.utility.set_max_threads(1)
+        try:
+            model, inl = pcd.segment_plane(distance_threshold=distance_m, ransac_n=3,
+                                           num_iterations=1000, probability=0.99999)
+        finally:
+            o3d.utility.set_max_threads(threads)
         plane = np.asarray(model, dtype=np.float64)
         plane /= np.linalg.norm(plane[:3])
         if plane[:3] @ up < 0:
