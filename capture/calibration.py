@@ -601,7 +601,8 @@ def level_with_floor(extrinsics: Extrinsics,
         voxel_m: voxel size of the downsampling before RANSAC.
         distance_m: plane inlier distance (RANSAC, and the final least-squares refit on the
             full-resolution points).
-        max_planes: planes extracted one after another (largest first) to look for the floor.
+        max_planes: planes extracted one after another (largest first) to look for the floor
+            (fewer once what is left holds fewer points than the floor found).
         max_tilt_deg: a floor candidate's normal is within this of the cameras' mean "up"
             (−Y of the camera frames).
 
