@@ -294,11 +294,15 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         dtransl0 = base
     # corrections: smooth (a cubic B-spline, control points every knot_frames frames) plus an
     # optional per-frame residual; few smooth parameters keep L-BFGS well conditioned
-    basis = tensor(_spline_basis(t, knot_frames))
+    basis_np = _spline_basis(t, knot_frames)
+    basis = tensor(basis_np)
     n_knots = basis.shape[1]
     knots = torch.zeros(n_knots, 24, 3, dtype=dt, device=dev, requires_grad=True)
     eps = torch.zeros(t, 24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_deg > 0)
-    knots_t = torch.linalg.lstsq(basis, tensor(dtransl0)).solution.contiguous().requires_grad_(True)
+    # numpy's SVD least squares: torch's default CPU driver (gelsy) answered the same system
+    # differently in the last bits from call to call (17 results in 30 calls), which L-BFGS
+    # carried to ~0.5 mm in the fused joints
+    knots_t = tensor(np.linalg.lstsq(basis_np, dtransl0, rcond=None)[0]).requires_grad_(True)
     eps_t = torch.zeros(t, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_m > 0)
     params = [p for p in (knots, eps, knots_t, eps_t) if p.requires_grad]
 
