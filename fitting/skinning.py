@@ -46,6 +46,14 @@ class Posed:
     pose_offsets: torch.Tensor | None
 
 
+def _rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x[index]`` for (N,C) ``x`` and an index of any shape -> (*index.shape, C), by
+    ``index_select``: the gradient of ``x[index]`` is summed with parallel atomic adds on a
+    CPU with several threads, in a different order each time (a fit then differs from run to
+    run in the last bits, ~1e-7 in the betas), while ``index_select``'s is summed in order."""
+    return x.index_select(0, index.reshape(-1)).view(*index.shape, x.shape[1])
+
+
 class Skinner:
     """Poses a body model's vertices (all, or a per-frame selection) for one shared shape."""
 
@@ -147,7 +155,7 @@ class Skinner:
         (:meth:`vertices` with ``selected``). Laid out with M last, the fastest layout for
         that product on CPU."""
         w = self.model.weights[index].transpose(1, 2)  # (B,J,M), gathered as rows of J
-        v = v_shaped.T[:, index].transpose(0, 1)  # (B,3,M)
+        v = _rows(v_shaped, index).permute(0, 2, 1)  # (B,3,M)
         vh = torch.cat([v, torch.ones_like(v[:, :1])], dim=1)  # (B,4,M)
         # written into a contiguous (B,J,4,M): the product would otherwise take the gathered
         # weights' transposed layout, and the flatten below would copy it
@@ -174,7 +182,7 @@ class Skinner:
                 v = v + posed.pose_offsets
             blended = (w @ posed.transforms).view(b, -1, 3, 4)
         else:
-            w, v = m.weights[index], v_shaped[index]
+            w, v = m.weights[index], _rows(v_shaped, index)
             if posed.pose_offsets is not None:
                 v = v + torch.gather(posed.pose_offsets, 1, index[..., None].expand(-1, -1, 3))
             blended = torch.bmm(w, posed.transforms).view(b, -1, 3, 4)

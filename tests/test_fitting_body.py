@@ -334,6 +334,33 @@ def test_skinner_matches_the_body_model():
                                torch.ones(verts.shape[:2]))
 
 
+def test_skinner_gradients_repeat_with_two_threads():
+    """The betas' gradient through the selected vertices is the same every time on two
+    threads (``v_shaped[index]`` summed its gradient with parallel atomic adds: a shape fit
+    differed from run to run)."""
+    model = load_body_model("couch-body-coarse")
+    rng = np.random.default_rng(3)
+    aa = torch.as_tensor(rng.normal(0, 0.4, (30, 24, 3)), dtype=torch.float32)
+    transl = torch.as_tensor(rng.normal(0, 1, (30, 3)), dtype=torch.float32)
+    idx = torch.as_tensor(rng.integers(0, model.num_vertices, (30, 3000)))
+    up = torch.as_tensor(rng.normal(0, 1, (30, 3000, 3)), dtype=torch.float32)
+    skin = Skinner(model)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = []
+        for _ in range(8):
+            betas = torch.zeros(10, requires_grad=True)
+            v_shaped, rest = skin.rest(betas)
+            posed = skin.pose(axis_angle_to_matrix(aa), rest, transl)
+            loss = (skin.vertices(posed, v_shaped, idx) * up).sum()
+            grads.append(torch.autograd.grad(loss, betas)[0])
+    finally:
+        torch.set_num_threads(threads)
+    for k in range(1, 8):
+        assert torch.equal(grads[k], grads[0]), k
+
+
 def test_pad_clouds_subsamples_reproducibly():
     rng = np.random.default_rng(3)
     clouds = [rng.random((n, 3)).astype(np.float32) for n in (500, 80, 0)]
