@@ -31,8 +31,13 @@ system-deps:
 	  fi; \
 	fi
 
+# Two worker processes (pytest-xdist) by default, one per core of the 2-core machines we target;
+# each test file runs whole on one worker (tests/conftest.py). `make test TEST_WORKERS=0` runs
+# the suite in one process.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --no-loadscope-reorder
 
 # The main job on the bundled fixture session: couch-process (calibration, chair registration,
 # sync, body fits, contacts) into out/fixture_processed/, its summary, and where the report is.

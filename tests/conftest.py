@@ -1,8 +1,11 @@
-"""Shared fixtures: body models are loaded once per test session."""
+"""Shared fixtures (body models are loaded once per test session) and how `make test` splits
+the suite over worker processes (pytest-xdist, ``--dist loadgroup``)."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,6 +20,53 @@ from couch.schema import ProcessedSession
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+#: Test files that share the session-scoped :func:`ci_run` (every network trained, ~minutes):
+#: one worker runs them all, so the training happens once.
+TRAINED = ("test_synthesis_controller", "test_synthesis_evaluation", "test_synthesis_plans",
+           "test_synthesis_precision", "test_synthesis_train")
+#: Units of work handed out first, longest first (each 2-8 minutes on 2 cores, measured with
+#: ``--durations``): a worker that starts a long unit last keeps the suite waiting while the
+#: other idles.
+FIRST = ("test_process", "test_sync", "test_fitting_session", "test_fitting_chair", "trained",
+         "test_sim_motion", "test_capture_calibration", "test_fitting_contacts")
+
+
+def _unit(path: str) -> str:
+    """The unit of work (one worker runs it whole) of a test file's path or node id."""
+    module = Path(path.split("::")[0]).stem
+    return "trained" if module in TRAINED else module
+
+
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook: `make test` runs -n 2
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """Each test file is one unit of work, so its module- and session-scoped fixtures are
+    built once, on one worker; the files sharing :func:`ci_run` are one unit together.
+    (xdist's own ``--dist loadgroup`` marks no longer reach its scheduler under pytest 9.2, as
+    the node id it rewrites is not the one pytest reports.)"""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileUnits(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _unit(nodeid)
+
+    return FileUnits(config, log)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """On xdist's workers (whose collection the scheduler hands out in order, with
+    ``--no-loadscope-reorder``) the longest units come first; otherwise pytest's order."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    rank = {u: i for i, u in enumerate(FIRST)}
+    items.sort(key=lambda item: rank.get(_unit(item.nodeid), len(FIRST)))  # stable
+
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # N workers on the machine's cores: each torch gets its share of threads instead of all of
+    # them (oversubscribed OpenMP threads spin against each other).
+    torch.set_num_threads(max(1, (os.cpu_count() or 1)
+                              // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
 
 
 @pytest.fixture(scope="session")
