@@ -121,6 +121,8 @@ def test_accuracy_bench_pools_f1_and_checks_its_arguments():
         pytest.approx(4 / 6), 1.0, 0.0]
     with pytest.raises(SystemExit):
         accuracy.main(["--sessions", "0"])
+    with pytest.raises(SystemExit):
+        accuracy.main(["--jobs", "0"])
     ours = np.array([[0.01, 0.05], [0.035, 0.02], [0.10, 0.0]])
     true = np.array([[0.02, 0.06], [0.05, 0.01], [0.03, 0.039]])
     e = accuracy.distance_errors(ours, true)

@@ -16,8 +16,9 @@ rigid transform that maps our camera centres onto the true ones, so the calibrat
 in every number.
 
 Run: ``python -m couch.tools.bench.accuracy [-o DIR] [--sessions N] [--fps F] [--duration S]
-[--threads K] [--seed-offset K [K ...]]`` (several offsets pool their sessions). A session
-takes about 1-3 min to simulate and process at 15 fps, 8 s.
+[--threads K] [--jobs J] [--seed-offset K [K ...]]`` (several offsets pool their sessions;
+``--jobs`` runs J sessions at a time in spawned processes, the printed pooled numbers the same
+as one at a time). A session takes about 1-3 min to simulate and process at 15 fps, 8 s.
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import os
 import tempfile
 import time
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -301,6 +304,15 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
                             json.loads((root / "truth.json").read_text()))
 
 
+def _timed(label: str, name: str, settings: dict[str, Any], work: Path, fps: float,
+           duration: float, threads: int | None) -> tuple[str, SessionAccuracy | str, float]:
+    """:func:`_one` in a worker process: (label, its result, seconds)."""
+    if threads:
+        torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    return label, _one(name, settings, work, fps, duration), time.perf_counter() - t0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("-o", "--output", type=Path, default=None,
@@ -311,6 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per session")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="sessions simulated and processed at a time, each in its own process "
+                         "(default 1: in this process)")
     ap.add_argument("--seed-offset", type=int, nargs="+", default=[0],
                     help="add this to every session's simulator seed: the same kinds of "
                          "session on other draws (held out from whatever was tuned on these); "
@@ -318,27 +333,46 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not 1 <= args.sessions <= len(SESSIONS):
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
+    if args.jobs < 1:
+        ap.error(f"--jobs must be at least 1, got {args.jobs}")
+    if args.jobs > 1 and not args.threads:  # the cores shared out, not each job taking all
+        args.threads = max(1, (os.cpu_count() or 1) // args.jobs)
     if args.threads:
         torch.set_num_threads(args.threads)
-    rows: list[SessionAccuracy] = []
-    failed: list[str] = []
+    results: dict[str, SessionAccuracy | str] = {}
+
+    def report(label: str, a: SessionAccuracy | str, seconds: float) -> None:
+        results[label] = a
+        print(f"[{label}] {a}" if isinstance(a, str) else a.line(label) + f" ({seconds:.0f} s)",
+              flush=True)
+
     with tempfile.TemporaryDirectory() as tmp:
+        tasks = []
         for offset in args.seed_offset:
             work = args.output or Path(tmp)
             if offset:  # a kept folder is re-used by session name: other draws, other names
                 work = work / f"seed{offset:+d}"
             work.mkdir(parents=True, exist_ok=True)
             for name, settings in SESSIONS[:args.sessions]:
-                t0 = time.perf_counter()
-                label = f"{name}{offset:+d}" if offset else name
-                a = _one(name, dict(settings, seed=settings["seed"] + offset), work, args.fps,
-                         args.duration)
-                if isinstance(a, str):
-                    failed.append(label)
-                    print(f"[{label}] {a}", flush=True)
-                    continue
-                print(a.line(label) + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
-                rows.append(a)
+                tasks.append((f"{name}{offset:+d}" if offset else name, name,
+                              dict(settings, seed=settings["seed"] + offset), work, args.fps,
+                              args.duration, args.threads))
+        if args.jobs == 1:
+            for task in tasks:
+                report(*_timed(*task))
+        else:
+            # spawned, not forked: torch's and open3d's thread pools do not survive a fork
+            with ProcessPoolExecutor(max_workers=args.jobs,
+                                     mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures: list[Future[tuple[str, SessionAccuracy | str, float]]] = [
+                    pool.submit(_timed, *task) for task in tasks]
+                for fut in as_completed(futures):
+                    report(*fut.result())
+    # pooled in the sessions' order whatever order they finished in (the intervals resample
+    # sessions by index)
+    labels = [task[0] for task in tasks]
+    rows = [a for a in (results[label] for label in labels) if not isinstance(a, str)]
+    failed = [label for label in labels if isinstance(results[label], str)]
     offsets = ", ".join(str(o) for o in args.seed_offset)
     print(f"\n{len(rows)} sessions (seed offset {offsets}), {args.fps:g} fps, "
           f"{args.duration:g} s each "
