@@ -1005,16 +1005,16 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 # smallest turn of the shoulder along the great circle towards the target
                 # that brings it within reach (distance falls monotonically along it)
                 full = Rotation.from_rotvec(normalize(np.cross(u0, u1)) * np.arccos(
-                    np.clip((u0 * u1).sum(1), -1, 1))[:, None])
+                    np.clip((u0 * u1).sum(1), -1, 1))[:, None]).as_rotvec()
                 frac = np.ones(n)
                 for f in np.linspace(0.0, 1.0, 21)[::-1]:
-                    step = Rotation.from_rotvec(full.as_rotvec() * f)
+                    step = Rotation.from_rotvec(full * f)
                     shoulder = pivot + radius * step.apply(u0)
                     ok = np.linalg.norm(plan["wrist"] - shoulder, axis=1) < reach
                     frac = np.where(ok, f, frac)
                 frac = np.where(np.linalg.norm(plan["wrist"] - pivot - lever, axis=1) < reach,
                                 0.0, frac) * c
-                turn = Rotation.from_rotvec(full.as_rotvec() * frac[:, None]).as_matrix()
+                turn = Rotation.from_rotvec(full * frac[:, None]).as_matrix()
                 extra = turn @ extra
         g, pos = upper_body(extra)
         bend = np.degrees(Rotation.from_matrix(extra).magnitude())
