@@ -1,5 +1,5 @@
 """Shared fixtures (body models are loaded once per test session) and how `make test` splits
-the suite over worker processes (pytest-xdist, ``--dist loadgroup``)."""
+the suite over worker processes (pytest-xdist: each test file is one unit of work)."""
 
 from __future__ import annotations
 
