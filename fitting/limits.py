@@ -4,7 +4,11 @@ Same definition as :func:`couch.body.limits.joint_limit_excess_deg`: each body j
 rotation is decomposed into intrinsic Euler angles in the joint's own order
 (:data:`couch.body.limits.EULER_ORDERS`), of the two equivalent decompositions the one closer to
 the joint's range counts, and an angle outside its range costs the square of the excess
-(radians²). Zero inside every range, so a fit is free there.
+(radians²). Zero inside every range, so a fit is free there. One difference: within 5° of
+gimbal lock (a middle angle at ±90°) the numpy reading may re-split the first and third angles
+to bring them into range (moving the rotation by under 1°); this penalty keeps the plain split,
+so there it can push a fit off a pose the numpy reading calls legal (a penalty that re-split
+would need the split chosen without breaking the gradient; not needed so far).
 """
 
 from __future__ import annotations

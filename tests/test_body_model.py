@@ -312,3 +312,26 @@ def test_bundled_npz_through_smplx_gives_the_same_vertices(body_model):
     theirs = ref(betas=betas, body_pose=pose, global_orient=orient).vertices
     ours = body_model(betas=betas, body_pose=pose, global_orient=orient).vertices
     assert (theirs - ours).abs().max() < 1e-5
+
+
+def test_a_legal_joint_near_gimbal_lock_reads_legal_and_is_not_clamped():
+    # A right elbow with its middle Euler angle at 89.6°, as scipy splits it in the elbow's YXZ
+    # order: (y, x, z) = (21.1, 89.6, -75.7), z 36° outside its range; near the lock only
+    # y - z is defined, and (56.8, 89.6, -40) is within 0.3° of the same rotation. Clamping the
+    # first split swung a simulated forearm 34° in one 120 Hz frame and back in the next.
+    from scipy.spatial.transform import Rotation
+
+    from couch.body import JOINT_INDEX
+    from couch.body.limits import clamp_to_limits, joint_limit_excess_deg
+
+    pose = np.zeros((2, 23, 3))
+    j = JOINT_INDEX["right_elbow"] - 1
+    pose[0, j] = Rotation.from_euler("YXZ", [21.1, 89.6, -75.7], degrees=True).as_rotvec()
+    # and one truly out of range (z 30° past its limit, far from the lock): still clamped
+    pose[1, j] = Rotation.from_euler("YXZ", [60.0, 30.0, -70.0], degrees=True).as_rotvec()
+    excess = joint_limit_excess_deg(pose.reshape(2, 69))[:, j]
+    assert excess[0] < 1e-6 and abs(excess[1] - 30.0) < 1e-6
+    clamped = clamp_to_limits(pose.reshape(2, 69)).reshape(2, 23, 3)
+    np.testing.assert_array_equal(clamped[0], pose[0])
+    moved = (Rotation.from_rotvec(pose[1, j]).inv() * Rotation.from_rotvec(clamped[1, j]))
+    assert 20.0 < np.degrees(moved.magnitude()) < 31.0

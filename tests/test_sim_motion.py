@@ -186,6 +186,56 @@ def test_joints_move_at_human_speeds(case, sequences):
     assert speed.max() < 6.0, (speed.max(), speed.max(0).argmax())
 
 
+def test_a_part_way_blend_keeps_turning_the_same_way_past_180_degrees():
+    # An arm blended part of the way between its procedural pose and its IK pose swung 127° in
+    # one 120 Hz frame where the two came to be 180° apart (the shortest way round changed
+    # sides); seen on a two-hand sofa draw at 8 m/s.
+    from scipy.spatial.transform import Rotation
+
+    n = 40
+    a = np.broadcast_to(np.eye(3), (n, 3, 3))
+    b = Rotation.from_rotvec(np.radians(np.linspace(160.5, 199.5, n))[:, None] * [0.0, 0, 1]
+                             ).as_matrix()  # 180° apart between frames 19 and 20
+    w = np.full(n, 0.5)
+    w[:3], w[-3:] = 0.0, 1.0
+    out = sim_motion._blend_rot(a, b, w)
+    step = np.degrees(Rotation.from_matrix(np.swapaxes(out[:-1], -1, -2) @ out[1:]).magnitude())
+    partial = (w[1:] > 0) & (w[1:] < 1) & (w[:-1] > 0) & (w[:-1] < 1)
+    assert step[partial].max() < 1.0, step.max()  # half of the 1° per frame that b turns
+    np.testing.assert_allclose(out[:3], a[:3], atol=1e-12)
+    np.testing.assert_allclose(out[-3:], b[-3:], atol=1e-12)
+    # before the two are 180° apart the blend is the plain shortest-way slerp, to the bit
+    plain = (Rotation.from_matrix(a) * Rotation.from_rotvec(
+        (Rotation.from_matrix(a).inv() * Rotation.from_matrix(b)).as_rotvec() * w[:, None])
+             ).as_matrix()
+    assert np.array_equal(out[:20], plain[:20])
+    assert np.abs(out[21:-3] - plain[21:-3]).max() > 1.0  # the other way round after it
+
+
+def test_a_steady_pole_keeps_the_elbow_from_spinning_round_the_arm():
+    # A pole fixed to the body lines up with the shoulder-wrist line when a hand passes along
+    # it; the elbow then spins round the line within a few frames (a draw's elbow at 19.6 m/s).
+    from couch.geometry import two_bone_ik
+    from couch.tools.sim.ik import steady_pole
+
+    n, fps = 121, 120.0
+    root = np.zeros((n, 3))
+    target = np.stack([np.linspace(-0.2, 0.2, n), np.full(n, -0.45), np.full(n, 0.003)], 1)
+    pole = np.array([0.0, -1.0, 0.0])  # straight down: the hand passes just in front of it
+
+    def speed(p):
+        return np.linalg.norm(np.diff(p, axis=0), axis=1) * fps
+
+    fixed = two_bone_ik(root, target, pole, 0.3, 0.25)[0]
+    steady = steady_pole(root, target, pole, 0.3, 0.25, fps, 2.5)
+    middle, _, lower, _ = two_bone_ik(root, target, steady, 0.3, 0.25)
+    assert speed(fixed).max() > 10.0
+    assert speed(middle).max() < 3.0  # 2.5 m/s round the line and the line's own 0.4 m/s
+    np.testing.assert_allclose(middle + 0.25 * lower, target, atol=1e-9)  # still reaches it
+    slow = np.flatnonzero(speed(fixed) < 1.0)[:10] + 1  # before the spin: untouched
+    assert np.array_equal(steady[slow], np.broadcast_to(pole, (len(slow), 3)))
+
+
 def test_a_sofa_is_sat_on_along_its_length_and_a_chair_in_its_middle(models):
     """People sit anywhere along a sofa, often at an end with an arm on the armrest: a
     one-hand sitter's pelvis moves along a sofa's seat (within 0.3 m of its side edges, half

@@ -60,6 +60,10 @@ _ORDER = {"left_elbow": "YXZ", "right_elbow": "YXZ", "left_shoulder": "ZYX",
 #: Each body joint's intrinsic Euler order (scipy's upper-case convention), hinge axis first.
 EULER_ORDERS: dict[str, str] = {n: _ORDER.get(n, "XYZ") for n in JOINT_NAMES[1:]}
 
+# Near gimbal lock (the middle angle within this many degrees of ±90°) the first and third
+# angles may be re-split (see _unlocked) if that moves the rotation by less than _LOCK_MOVE_DEG.
+_LOCK_DEG = 5.0
+_LOCK_MOVE_DEG = 1.0
 _LOW = np.array([[r[0] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 _HIGH = np.array([[r[1] for r in JOINT_LIMITS_DEG[n]] for n in JOINT_NAMES[1:]])
 
@@ -74,7 +78,9 @@ def body_pose_euler_deg(body_pose: np.ndarray) -> np.ndarray:
 
     A rotation has two Tait-Bryan decompositions, (a, b, c) and (a ± 180, ±180 − b, c ± 180);
     the one closer to the joint's range is returned, so a legal pose never reads as a violation
-    because of the representation.
+    because of the representation; near gimbal lock, where the first and third angles are split
+    arbitrarily, they are re-split into range where that moves the rotation by under 1°
+    (:func:`_unlocked`).
     """
     aa = np.asarray(body_pose, dtype=np.float64).reshape(-1, 23, 3)
     out = np.empty_like(aa)
@@ -88,7 +94,46 @@ def body_pose_euler_deg(body_pose: np.ndarray) -> np.ndarray:
         worse = np.maximum(np.maximum(lo - first, first - hi), 0).sum(1) > np.maximum(
             np.maximum(lo - second, second - hi), 0).sum(1)
         angles = np.where(worse[:, None], second, first)
-        out[:, j, slots] = angles
+        out[:, j, slots] = _unlocked(angles, order, lo, hi)
+    return out
+
+
+def _excess(angles: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(lo - angles, angles - hi), 0).sum(-1)
+
+
+def _unlocked(angles: np.ndarray, order: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(T,3) decompositions in ``order`` with those near gimbal lock turned into range.
+
+    With the middle angle at ±90° only the sum or the difference of the first and third angles
+    is defined, and near it the decomposition splits it arbitrarily: a legal elbow read as
+    (89.6, 21.1, -75.7) with its third angle 36° out of range, and clamping that frame swung
+    the forearm 34° and back (an arm at 8 m/s in a simulated sit). Within ``_LOCK_DEG`` of the
+    lock, the first and third angles are shifted together (same or opposite way) by the
+    smallest amount that brings both into range, if the rotation moves by under
+    ``_LOCK_MOVE_DEG``; angles already in range are returned as they are.
+    """
+    near = (np.abs(np.abs(angles[:, 1]) - 90.0) < _LOCK_DEG) & (_excess(angles, lo, hi) > 0)
+    if not near.any():
+        return angles
+    a = angles[near]
+    best, best_excess = a, _excess(a, lo, hi)
+    for sign in (1.0, -1.0):
+        # s with lo0 <= a0 + s <= hi0 and lo2 <= a2 + sign s <= hi2
+        s_lo = np.maximum(lo[0] - a[:, 0], np.minimum(sign * (lo[2] - a[:, 2]),
+                                                      sign * (hi[2] - a[:, 2])))
+        s_hi = np.minimum(hi[0] - a[:, 0], np.maximum(sign * (lo[2] - a[:, 2]),
+                                                      sign * (hi[2] - a[:, 2])))
+        shift = np.clip(0.0, s_lo, s_hi)
+        cand = a + shift[:, None] * np.array([1.0, 0.0, sign])
+        moved = np.degrees((Rotation.from_euler(order, a, degrees=True).inv()
+                            * Rotation.from_euler(order, cand, degrees=True)).magnitude())
+        cand_excess = _excess(cand, lo, hi)
+        take = (s_lo <= s_hi) & (moved < _LOCK_MOVE_DEG) & (cand_excess < best_excess)
+        best = np.where(take[:, None], cand, best)
+        best_excess = np.where(take, cand_excess, best_excess)
+    out = angles.copy()
+    out[near] = best
     return out
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from couch.body import PARENTS, Skeleton  # noqa: F401  (Skeleton re-exported for the motion code)
-from couch.geometry import normalize, two_bone_ik  # noqa: F401  (re-exported for the motion code)
+from couch.geometry import normalize, two_bone_ik  # both also used by the motion code
 from couch.rotations import matrix_to_quat, quat_to_matrix
 
 
@@ -107,3 +107,51 @@ def transfer_twist(parent_local: np.ndarray, child_local: np.ndarray, axis: np.n
                            axis=-1)
     t = quat_to_matrix(twist)
     return parent_local @ t, np.swapaxes(t, -1, -2) @ child_local
+
+
+def steady_pole(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_upper: float,
+                len_lower: float, fps: float, max_speed: float) -> np.ndarray:
+    """(T,3) poles for :func:`two_bone_ik` under which the middle joint does not swing about
+    the root→target line faster than ``max_speed`` (m/s).
+
+    A pole fixed to the body is ill-defined where the root→target line passes along it (an arm
+    reaching down and back past its back-and-down pole): the bend direction, the pole made
+    perpendicular to that line, then spins round it within a few frames and the elbow sweeps
+    20-30 cm in one frame. Here the bend direction's angle about the line (measured in a frame
+    carried along the line from frame to frame) may change by at most ``max_speed`` over the
+    middle joint's distance from the line per frame; the frames where the given pole stays
+    within that are returned as given, so their solve is unchanged to the bit, and the others
+    get the limited bend direction itself as their pole.
+
+    Args:
+        root, target: (T,3) m, the chain's first joint and its target, consecutive frames.
+        pole: (T,3) or (3,), the direction the middle joint bends towards.
+        len_upper, len_lower: m, the bone lengths.
+        fps: frames per second of the T frames.
+        max_speed: m/s, the fastest the middle joint may swing about the line.
+    """
+    root, target = np.asarray(root, np.float64), np.asarray(target, np.float64)
+    pole = np.array(np.broadcast_to(pole, root.shape), np.float64)
+    middle = two_bone_ik(root, target, pole, len_upper, len_lower)[0]
+    e = normalize(target - root)
+    radial = (middle - root) - ((middle - root) * e).sum(-1, keepdims=True) * e
+    radius = np.linalg.norm(radial, axis=-1)
+    bend = normalize(radial)
+    # A reference direction carried along the line with no twist of its own (the recurrence
+    # is inherently sequential), and the bend direction's angle about the line from it.
+    ref = np.empty_like(e)
+    ref[0] = bend[0]
+    for t in range(1, len(e)):
+        r = ref[t - 1] - (ref[t - 1] @ e[t]) * e[t]
+        ref[t] = normalize(r) if np.linalg.norm(r) > 1e-6 else bend[t]
+    side = np.cross(e, ref)
+    angle = np.unwrap(np.arctan2((side * bend).sum(-1), (ref * bend).sum(-1)))
+    step = max_speed / (fps * np.maximum(radius, 1e-3))
+    limited = angle.copy()
+    for t in range(1, len(angle)):
+        d = angle[t] - limited[t - 1]
+        if abs(d) > step[t]:
+            limited[t] = limited[t - 1] + np.copysign(step[t], d)
+    changed = limited != angle
+    pole[changed] = (np.cos(limited)[:, None] * ref + np.sin(limited)[:, None] * side)[changed]
+    return pole

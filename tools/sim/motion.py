@@ -31,6 +31,7 @@ from couch.tools.sim.ik import (
     limb_rotations,
     local_from_global,
     normalize,
+    steady_pole,
     transfer_twist,
     two_bone_ik,
     yaw_matrix,
@@ -44,6 +45,8 @@ INTERACTION_MIX = {"right_hand": 0.173, "left_hand": 0.140, "both_hands": 0.289,
                    "no_contact": 0.174, "free": 0.152, "locomotion": 0.072}
 
 DENSE_HZ = 120.0
+# m/s: the fastest an elbow swings about its shoulder-wrist line (see ik.steady_pole)
+ELBOW_SWING = 2.5
 # How far the palm centre is first held above a contact point: fingers and thumb reach a little
 # below the palm's plane. Only a first guess: how far the hand really is from the chair depends on
 # the surface's curvature and the hand's tilt (a hold's median measured -1.4 to 3.6 cm), so each
@@ -813,7 +816,9 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             continue
         lateral = np.cross([0.0, 1.0, 0.0], forward) * sign
         pole = -forward * 0.8 + lateral * 0.45 - np.array([0, 0.3, 0])
-        _, d_up, d_low, hinge = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+        _, d_up, d_low, hinge = two_bone_ik(
+            pos[sh], wrist_t[side],
+            steady_pole(pos[sh], wrist_t[side], pole, *body.arm, DENSE_HZ, ELBOW_SWING), *body.arm)
         if side in contact_info:
             # Second pass: lay the palm along the forearm's direction on the surface, so the
             # wrist stays near neutral, then re-solve the arm for the moved wrist.
@@ -830,7 +835,10 @@ def _solve(model, body: _Body, betas, interaction, seat: SeatGeometry, tl: Timel
             wrist_c = plan["point"] + plan["hover"] * nrm - rot_c @ body.palm_offset[side]
             wrist_t[side] = thigh_target * (1 - c[:, None]) + wrist_c * c[:, None] + _hand_arc(c)
             hand_rot[side] = _blend_rot(thigh_rot, rot_c, c)
-            _, d_up, d_low, hinge = two_bone_ik(pos[sh], wrist_t[side], pole, *body.arm)
+            _, d_up, d_low, hinge = two_bone_ik(
+                pos[sh], wrist_t[side],
+                steady_pole(pos[sh], wrist_t[side], pole, *body.arm, DENSE_HZ, ELBOW_SWING),
+                *body.arm)
         rest_up = body.sk.rest[el] - body.sk.rest[sh]
         rest_low = body.sk.rest[wr] - body.sk.rest[el]
         # twist from the elbow's hinge axis: the pole is no fixed frame for an arm reaching
@@ -1033,11 +1041,35 @@ def _hand_arc(c: np.ndarray, height: float = 0.12) -> np.ndarray:
 
 
 def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Per-frame slerp between rotation matrices a and b (T,3,3) with weights w (T,)."""
+    """Per-frame slerp between rotation matrices a and b (T,3,3) with weights w (T,).
+
+    Each run of consecutive frames blended part of the way (0 < w < 1) turns from a towards b
+    the same way round from frame to frame: the shortest way changes sides where a and b pass
+    180° apart, which swung a blended arm 127° in one 120 Hz frame. A run starts the shortest
+    way; frames at w = 0 or 1 do not depend on the way.
+    """
+    w = np.clip(w, 0, 1)
     ra, rb = Rotation.from_matrix(np.broadcast_to(a, (len(w), 3, 3))), Rotation.from_matrix(
         np.broadcast_to(b, (len(w), 3, 3)))
-    delta = (ra.inv() * rb).as_rotvec()
-    return (ra * Rotation.from_rotvec(delta * np.clip(w, 0, 1)[:, None])).as_matrix()
+    delta = (ra.inv() * rb).as_rotvec()  # angles in [0, pi]
+    angle = np.linalg.norm(delta, axis=-1)
+    # unit quaternions of the deltas (w >= 0); a negative dot between neighbours is a side swap
+    quat = np.concatenate([np.cos(angle / 2)[:, None],
+                           np.sin(angle / 2)[:, None] * delta / np.maximum(angle, 1e-12)[:, None]],
+                          axis=1)
+    partial = (w > 0) & (w < 1)
+    swap = np.zeros(len(w), bool)
+    swap[1:] = ((quat[1:] * quat[:-1]).sum(-1) < 0) & partial[1:] & partial[:-1]
+    if swap.any():
+        runs = np.cumsum(~(partial & np.concatenate([[False], partial[:-1]])))  # run ids
+        count = np.cumsum(swap)
+        start = np.zeros(runs.max() + 1, np.int64)
+        first = np.flatnonzero(np.r_[True, runs[1:] != runs[:-1]])
+        start[runs[first]] = count[first]
+        odd = ((count - start[runs]) % 2 == 1) & partial
+        # the other way round: angle - 2 pi about the same axis
+        delta[odd] *= ((angle[odd] - 2 * np.pi) / np.maximum(angle[odd], 1e-12))[:, None]
+    return (ra * Rotation.from_rotvec(delta * w[:, None])).as_matrix()
 
 
 def _arm_swing(time: np.ndarray, moving: np.ndarray, step_rate: float
