@@ -106,12 +106,12 @@ def _unlocked(angles: np.ndarray, order: str, lo: np.ndarray, hi: np.ndarray) ->
     """(T,3) decompositions in ``order`` with those near gimbal lock turned into range.
 
     With the middle angle at ±90° only the sum or the difference of the first and third angles
-    is defined, and near it the decomposition splits it arbitrarily: a legal elbow read as
-    (89.6, 21.1, -75.7) with its third angle 36° out of range, and clamping that frame swung
-    the forearm 34° and back (an arm at 8 m/s in a simulated sit). Within ``_LOCK_DEG`` of the
-    lock, the first and third angles are shifted together (same or opposite way) by the
-    smallest amount that brings both into range, if the rotation moves by under
-    ``_LOCK_MOVE_DEG``; angles already in range are returned as they are.
+    is defined, and near it the decomposition splits it arbitrarily: a legal right elbow read
+    as (y, x, z) = (21.1, 89.6, -75.7) in its YXZ order, z 36° out of range, and clamping that
+    frame swung the forearm 34° and back (a hand at 7 m/s in a simulated sit). Within
+    ``_LOCK_DEG`` of the lock, the first and third angles are shifted together (same or
+    opposite way) by the smallest amount that brings both into range, if the rotation moves by
+    under ``_LOCK_MOVE_DEG``; angles already in range are returned as they are.
     """
     near = (np.abs(np.abs(angles[:, 1]) - 90.0) < _LOCK_DEG) & (_excess(angles, lo, hi) > 0)
     if not near.any():

@@ -116,12 +116,12 @@ def steady_pole(root: np.ndarray, target: np.ndarray, pole: np.ndarray, len_uppe
 
     A pole fixed to the body is ill-defined where the root→target line passes along it (an arm
     reaching down and back past its back-and-down pole): the bend direction, the pole made
-    perpendicular to that line, then spins round it within a few frames and the elbow sweeps
-    20-30 cm in one frame. Here the bend direction's angle about the line (measured in a frame
-    carried along the line from frame to frame) may change by at most ``max_speed`` over the
-    middle joint's distance from the line per frame; the frames where the given pole stays
-    within that are returned as given, so their solve is unchanged to the bit, and the others
-    get the limited bend direction itself as their pole.
+    perpendicular to that line, then spins round it within a frame or two and the elbow sweeps
+    tens of centimetres between frames. Here the bend direction's angle about the line
+    (measured in a frame carried along the line from frame to frame) may change by at most
+    ``max_speed`` over the middle joint's distance from the line per frame; the frames where
+    the given pole stays within that are returned as given, so their solve is unchanged to the
+    bit, and the others get the limited bend direction itself as their pole.
 
     Args:
         root, target: (T,3) m, the chain's first joint and its target, consecutive frames.
