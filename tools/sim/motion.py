@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from couch.body import JOINT_INDEX, BodyModel, sitting_pose
 from couch.body.limits import clamp_to_limits
+from couch.rotations import axis_angle_to_quat
 from couch.tools.sim.ik import (
     Skeleton,
     align,
@@ -1052,23 +1053,20 @@ def _blend_rot(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
     ra, rb = Rotation.from_matrix(np.broadcast_to(a, (len(w), 3, 3))), Rotation.from_matrix(
         np.broadcast_to(b, (len(w), 3, 3)))
     delta = (ra.inv() * rb).as_rotvec()  # angles in [0, pi]
-    angle = np.linalg.norm(delta, axis=-1)
-    # unit quaternions of the deltas (w >= 0); a negative dot between neighbours is a side swap
-    quat = np.concatenate([np.cos(angle / 2)[:, None],
-                           np.sin(angle / 2)[:, None] * delta / np.maximum(angle, 1e-12)[:, None]],
-                          axis=1)
+    # the deltas' quaternions have w >= 0: a negative dot between neighbours is a side swap
+    quat = axis_angle_to_quat(delta)
     partial = (w > 0) & (w < 1)
     swap = np.zeros(len(w), bool)
     swap[1:] = ((quat[1:] * quat[:-1]).sum(-1) < 0) & partial[1:] & partial[:-1]
     if swap.any():
-        runs = np.cumsum(~(partial & np.concatenate([[False], partial[:-1]])))  # run ids
+        # swaps since the start of each part-way run (count never falls, so the running maximum
+        # of its value at run starts is the latest start's)
         count = np.cumsum(swap)
-        start = np.zeros(runs.max() + 1, np.int64)
-        first = np.flatnonzero(np.r_[True, runs[1:] != runs[:-1]])
-        start[runs[first]] = count[first]
-        odd = ((count - start[runs]) % 2 == 1) & partial
+        starts = partial & ~np.r_[False, partial[:-1]]
+        odd = partial & ((count - np.maximum.accumulate(np.where(starts, count, 0))) % 2 == 1)
         # the other way round: angle - 2 pi about the same axis
-        delta[odd] *= ((angle[odd] - 2 * np.pi) / np.maximum(angle[odd], 1e-12))[:, None]
+        angle = np.linalg.norm(delta[odd], axis=-1)
+        delta[odd] *= ((angle - 2 * np.pi) / np.maximum(angle, 1e-12))[:, None]
     return (ra * Rotation.from_rotvec(delta * w[:, None])).as_matrix()
 
 
