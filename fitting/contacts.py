@@ -130,6 +130,10 @@ class ContactConfig:
     # an armrest while the subject turns in front of the chair, or while rising, is not how
     # they sat (the COUCH types describe the sitting down and the seated period)
     support_before: float = 1.5
+    # s: ... and only a touch that lasts to within this long of the landing, or later: a hand
+    # that takes weight is on the chair as the pelvis goes down; an armrest brushed while
+    # turning a second before and let go is no support
+    support_gap: float = 0.5
     lap_distance: float = 0.03  # m: a hand this close to a thigh rests on the lap (0: no test)
     support_lean: float = 6.0  # deg the torso leans towards a hand that takes weight
     foot_lift: float = 0.05  # m: a seated foot this far above the other is lifted (free)
@@ -142,7 +146,8 @@ class ContactConfig:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ContactConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("smooth", "speed_smooth", "min_duration", "max_gap", "walk_smooth",
-                     "min_seated", "merge_gap", "min_hand", "support_before", "min_lift",
+                     "min_seated", "merge_gap", "min_hand", "support_before", "support_gap",
+                     "min_lift",
                      "lap_distance",
                      "support_lean", "edge_walk_speed", "edge_walk_drop"):
             if not getattr(self, name) >= 0:
@@ -622,6 +627,16 @@ def walking(pelvis: np.ndarray, fps: float, config: ContactConfig | None = None)
     return _runs_mask(np.zeros(len(speed), bool), fast, s, e)
 
 
+def _lasting(touch: np.ndarray, window: slice, reach: int) -> np.ndarray:
+    """(K,) frames of the (T,K) ``touch`` flags inside ``window`` that belong to a run (within
+    the window) lasting to frame ``reach`` or later."""
+    out = np.zeros(touch.shape[1], np.int64)
+    for k in range(touch.shape[1]):
+        s, e = runs(touch[window, k])
+        out[k] = (e - s)[e + window.start > reach].sum()
+    return out
+
+
 def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.ndarray,
                        fps: float, config: ContactConfig | None = None,
                        hand_on_lap: np.ndarray | None = None, lean: np.ndarray | None = None,
@@ -649,7 +664,8 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
     s off the lap, or touches it that long (on the lap or not) while the torso leans towards it
     by ``support_lean`` as the subject sits down: a palm on the seat right beside the thigh
     touches both, and the weight it takes tilts the torso. Only touches from
-    ``support_before`` s before the pelvis lands to its last seated frame count.
+    ``support_before`` s before the pelvis lands to its last seated frame count, and of those
+    only the ones still on the chair ``support_gap`` s before the landing or later.
     """
     cfg = config or ContactConfig()
     active = np.asarray(active, bool)
@@ -689,8 +705,9 @@ def interaction_labels(active: np.ndarray, pelvis: np.ndarray, foot_height: np.n
         sit = slice(max(0, s - _frames(1.0, fps)), min(t, s + _frames(0.3, fps)))
         toward = np.array([1.0, -1.0]) * lean[sit].mean() >= np.deg2rad(cfg.support_lean)
         held = slice(max(ep.start, s - _frames(cfg.support_before, fps)), e)
-        left, right = (off_lap[held].sum(axis=0) >= min_hand) | (
-            toward & (hands[held].sum(axis=0) >= min_hand))
+        reach = s - _frames(cfg.support_gap, fps)
+        left, right = (_lasting(off_lap, held, reach) >= min_hand) | (
+            toward & (_lasting(hands, held, reach) >= min_hand))
         if lifted.any():
             code = FREE
         elif left and right:

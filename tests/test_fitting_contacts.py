@@ -235,6 +235,13 @@ def test_labels_from_synthetic_contacts():
     assert set(label(hand_on_lap=lap)[32:]) == {1}
     # ... unless the torso leans onto it while sitting down
     assert set(label(hand_on_lap=lap, lean=np.full(t, np.deg2rad(10)))[32:]) == {3}
+    # a left palm that brushed the armrest while turning, a second before the pelvis landed
+    # (and let go 0.9 s before), is no support; still on it 0.2 s before landing, it is
+    active[40:50, li] = False
+    active[32:36, li] = True
+    assert set(label()[32:]) == {1}
+    active[32:43, li] = True
+    assert set(label()[32:]) == {3}
     active[:, [li, ri]] = False
     feet[60:80, 1] = 0.1  # the right foot crossed over the left: free interaction
     assert set(label()[32:]) == {5}
