@@ -153,9 +153,11 @@ class ChairConfig:
         min_fitness: reject below this share of inliers among the cropped points.
         max_rmse: reject above this RMS inlier distance.
         ambiguity_fitness: candidates within this fitness of the best are equally good (then
-            the one explaining the most points of all frames is kept, and those within this
-            share of its count are the ambiguity) ...
-        ambiguity_deg: ... and ambiguous when their rotation differs by more than this.
+            those explaining within this share of the most points of all frames are kept, and
+            of those the one whose points lie closest to it wins) ...
+        ambiguity_distance: ... those whose points' mean distance is within this share of the
+            winner's are the ambiguity ...
+        ambiguity_deg: ... when their rotation differs by more than this.
         move_mm, move_deg: a pose this far from its segment's starts a new segment ...
         min_segment_frames: ... when this many accepted frames in a row agree (else: outliers).
         outlier_deg, outlier_mm: floors of the averaging's rejection thresholds (3 robust
@@ -195,6 +197,7 @@ class ChairConfig:
     min_fitness: float = 0.7
     max_rmse: float = 0.005
     ambiguity_fitness: float = 0.02
+    ambiguity_distance: float = 0.05
     ambiguity_deg: float = 5.0
     move_mm: float = 30.0
     move_deg: float = 3.0
@@ -798,15 +801,20 @@ def _shifted(scan: ChairScan, start: np.ndarray, cfg: ChairConfig) -> list[np.nd
 
 
 def _explained(clouds: Sequence[FusedCloud], scan: ChairScan,
-               scene: o3d.t.geometry.RaycastingScene, pose: np.ndarray, cfg: ChairConfig) -> int:
-    """Points of all ``clouds`` within ``inlier_distance`` of the scan posed at ``pose``."""
-    total = 0
+               scene: o3d.t.geometry.RaycastingScene, pose: np.ndarray, cfg: ChairConfig
+               ) -> tuple[int, float]:
+    """Points of all ``clouds`` within ``inlier_distance`` of the scan posed at ``pose``, and
+    the mean distance (m) of all their points within ``crop_margin`` of it, each counted at
+    most ``inlier_distance`` (a truncated mean, as MSAC scores a model: NaN without points)."""
+    total, near = 0, []
     for c in clouds:
         pts = np.asarray(c.points, np.float64)
         if len(pts):
             _, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin, cfg.inlier_distance)
             total += int(np.count_nonzero(d < cfg.inlier_distance))
-    return total
+            near.append(np.minimum(d, cfg.inlier_distance))
+    d = np.concatenate(near) if near else np.zeros(0)
+    return total, float(d.mean()) if len(d) else float("nan")
 
 
 def _good(r: FrameResult, cfg: ChairConfig) -> bool:
@@ -1073,19 +1081,25 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
             f"{top.points} points): is the scan of this chair and in metres?")
     # candidates as good as the best but turned: a symmetric chair, or a nearly symmetric one
     # whose telling part (a stool's leg) the person hides in this frame. The chair is static,
-    # so every frame's points judge them: the turn that explains the most points wins, and
-    # the turns that explain about as many are the ambiguity reported.
+    # so every frame's points judge them: the turns that explain about as many points as the
+    # most stay in (a turn that puts a hidden leg where there is none explains fewer), and of
+    # those the one the points lie closest to wins. A count cannot tell the turns of a nearly
+    # symmetric stool apart (three square legs turned by 120 degrees differ by millimetres),
+    # their distances can; the turns that fit about as closely are the ambiguity reported.
     rivals = [top] + [c for c in cands[1:]
                       if c.fitness >= top.fitness - cfg.ambiguity_fitness and _good(c, cfg)
                       and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg]
     ambiguity: list[float] = []
     if len(rivals) > 1:
-        explained = np.array([_explained(cl, scan, scene, c.pose, cfg) for c in rivals])
-        top = rivals[int(np.argmax(explained))]
-        ambiguity = sorted({round(float(rotation_angle_deg(c.pose, top.pose)), 1)
-                            for c, e in zip(rivals, explained, strict=True)
-                            if e >= (1 - cfg.ambiguity_fitness) * explained.max()
-                            and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg})
+        counts, spread = np.array([_explained(cl, scan, scene, c.pose, cfg)
+                                   for c in rivals]).T
+        level = np.flatnonzero(counts >= (1 - cfg.ambiguity_fitness) * counts.max())
+        win = int(level[np.argmin(spread[level])])
+        top = rivals[win]
+        ambiguity = sorted({round(float(rotation_angle_deg(rivals[k].pose, top.pose)), 1)
+                            for k in level
+                            if spread[k] <= (1 + cfg.ambiguity_distance) * spread[win]
+                            and rotation_angle_deg(rivals[k].pose, top.pose) > cfg.ambiguity_deg})
     sec["global"] = wallclock.perf_counter() - t0
 
     # per-frame ICP from the previous accepted pose; re-detect where it fails
