@@ -161,6 +161,18 @@ def test_motion_only_dataset(tmp_path):
                           first.joints)  # deterministic by seed
 
 
+def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path):
+    # `couch-simulate --motion-only --fps 15` wrote 30 fps motions until session 42
+    from couch.schema import read_processed
+    from couch.tools.sim.session import main
+
+    assert main([str(tmp_path), "--motion-only", "--fps", "15", "--duration", "4",
+                 "--seed", "5", "--quiet"]) == 0
+    motion = read_processed(tmp_path / "motion_00000.h5")
+    assert motion.fps == 15.0
+    assert np.allclose(np.diff(motion.time), 1 / 15.0)
+
+
 def test_motion_only_dataset_skips_an_implausible_slot(tmp_path):
     # seed 3's first slot has its only draw rejected: it is skipped and named, the rest written
     summary = simulate_motion_dataset(tmp_path, 2, seed=3, duration=4.0, progress=False,

@@ -312,8 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.motion_only:
             summary = simulate_motion_dataset(
                 args.out_dir, args.sequences, args.seed, None if args.duration == d.duration
-                else args.duration, interaction=args.interaction, chair=args.chair,
-                progress=not args.quiet)
+                else args.duration, fps=args.fps, interaction=args.interaction,
+                chair=args.chair, progress=not args.quiet)
             print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
                   f"to {args.out_dir} in {summary['seconds']} s")
             for s in summary["skipped"]:
