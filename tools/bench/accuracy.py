@@ -407,8 +407,10 @@ def main(argv: list[str] | None = None) -> int:
               f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
               f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
               f"{near}")
+    ok = [label for label in labels if not isinstance(results[label], str)]
+    low = int(np.argmin([a.labels for a in rows]))
     print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
-          f"{min(a.labels for a in rows):.3f} lowest")
+          f"{rows[low].labels:.3f} lowest ({ok[low]})")
     return 1 if failed else 0
 
 
