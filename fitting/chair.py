@@ -1091,9 +1091,9 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
                       and rotation_angle_deg(c.pose, top.pose) > cfg.ambiguity_deg]
     ambiguity: list[float] = []
     if len(rivals) > 1:
-        counts, spread = np.array([_explained(cl, scan, scene, c.pose, cfg)
-                                   for c in rivals]).T
-        level = np.flatnonzero(counts >= (1 - cfg.ambiguity_fitness) * counts.max())
+        explained, spread = np.array([_explained(cl, scan, scene, c.pose, cfg)
+                                      for c in rivals]).T
+        level = np.flatnonzero(explained >= (1 - cfg.ambiguity_fitness) * explained.max())
         win = int(level[np.argmin(spread[level])])
         top = rivals[win]
         ambiguity = sorted({round(float(rotation_angle_deg(rivals[k].pose, top.pose)), 1)
