@@ -155,6 +155,20 @@ def test_accuracy_bench_gives_f1_an_interval_over_sessions():
         accuracy.f1_intervals(good)
 
 
+def test_accuracy_bench_names_the_sessions_with_most_wrong_frames():
+    """``most_wrong``: sessions ranked by a part's false positives + negatives, most first,
+    ties in session order, sessions without a wrong frame left out."""
+    counts = np.zeros((4, 2, 3), np.int64)
+    counts[:, 0] = [[5, 1, 2], [9, 0, 0], [3, 0, 3], [1, 4, 6]]  # wrong: 3, 0, 3, 10
+    counts[:, 1] = [[4, 0, 0], [4, 0, 0], [4, 0, 0], [4, 0, 1]]
+    labels = ["a", "b", "c", "d"]
+    assert accuracy.most_wrong(labels, counts, 0) == [("d", 10), ("a", 3), ("c", 3)]
+    assert accuracy.most_wrong(labels, counts, 0, top=1) == [("d", 10)]
+    assert accuracy.most_wrong(labels, counts, 1) == [("d", 1)]
+    with pytest.raises(ValueError, match="parts, 3"):
+        accuracy.most_wrong(labels[:3], counts, 0)
+
+
 def test_accuracy_bench_tells_late_contacts_from_missed_ones():
     """Where the wrong contact frames lie: one frame off a true contact's start or end
     (``edge_errors``) or not, and which true contacts were found at all (``episode_counts``)."""

@@ -10,8 +10,9 @@ bootstrap interval over the sessions: :func:`f1_intervals`; a hand has a few doz
 frames in eight sessions, so one session moves its F1 by several points), how far each
 part's distance to the chair is off where the true part is near it (:func:`distance_errors`),
 where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
-:func:`edge_errors`) and how many true contacts were found at all (:func:`episode_counts`),
-and interaction label accuracy. Everything is compared in the simulator's world after the
+:func:`edge_errors`), how many true contacts were found at all (:func:`episode_counts`) and
+which sessions hold most of each hand's wrong frames (:func:`most_wrong`), and interaction label
+accuracy. Everything is compared in the simulator's world after the
 rigid transform that maps our camera centres onto the true ones, so the calibration's error is
 in every number.
 
@@ -55,7 +56,7 @@ from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
 
 __all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "edge_errors",
-           "episode_counts", "f1_intervals", "session_accuracy", "truth_from_ours"]
+           "episode_counts", "f1_intervals", "most_wrong", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 2.5).
@@ -220,6 +221,20 @@ def f1_intervals(counts: np.ndarray, *, level: float = 0.95, resamples: int = 20
     return np.array([bootstrap_interval(lambda i, k=k: float(f1_score(c[i, k].sum(0))),
                                         len(c), level=level, resamples=resamples, seed=seed)
                      for k in range(c.shape[1])]).reshape(c.shape[1], 2)
+
+
+def most_wrong(labels: list[str], counts: np.ndarray, part: int, top: int = 3
+               ) -> list[tuple[str, int]]:
+    """The ``top`` sessions with the most wrong frames (false positives + negatives) of
+    ``part``, from (S,K,3) true positive, false positive, false negative counts of the
+    sessions ``labels``, most first (ties in session order), sessions without any left out: a
+    pooled F1 below target is often one or two sessions, which is where to look."""
+    c = np.asarray(counts, np.int64)
+    if c.ndim != 3 or c.shape[2] != 3 or len(c) != len(labels):
+        raise ValueError(f"most_wrong: counts must be ({len(labels)}, parts, 3), got {c.shape}")
+    wrong = c[:, part, 1] + c[:, part, 2]
+    order = np.argsort(-wrong, kind="stable")[:top]
+    return [(labels[i], int(wrong[i])) for i in order if wrong[i] > 0]
 
 
 def truth_from_ours(result: PipelineResult, info: dict[str, Any]) -> np.ndarray:
@@ -408,6 +423,11 @@ def main(argv: list[str] | None = None) -> int:
               f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
               f"{near}")
     ok = [label for label in labels if not isinstance(results[label], str)]
+    for k in HANDS:
+        worst = most_wrong(ok, np.stack([a.contacts for a in rows]), k)
+        if worst:
+            print(f"{CONTACT_NAMES[k]}: most wrong frames in "
+                  + ", ".join(f"{label} ({n})" for label, n in worst))
     low = int(np.argmin([a.labels for a in rows]))
     print(f"labels: accuracy {np.mean([a.labels for a in rows]):.3f} mean, "
           f"{rows[low].labels:.3f} lowest ({ok[low]})")
