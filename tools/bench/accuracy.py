@@ -386,7 +386,8 @@ def main(argv: list[str] | None = None) -> int:
     # pooled in the sessions' order whatever order they finished in (the intervals resample
     # sessions by index)
     labels = [task[0] for task in tasks]
-    rows = [a for a in (results[label] for label in labels) if not isinstance(a, str)]
+    ok = [label for label in labels if not isinstance(results[label], str)]
+    rows = [results[label] for label in ok]
     failed = [label for label in labels if isinstance(results[label], str)]
     offsets = ", ".join(str(o) for o in args.seed_offset)
     print(f"\n{len(rows)} sessions (seed offset {offsets}), {args.fps:g} fps, "
@@ -395,11 +396,12 @@ def main(argv: list[str] | None = None) -> int:
           + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
     if not rows:
         return 1
-    counts = np.sum([a.contacts for a in rows], axis=0)
+    per_session = np.stack([a.contacts for a in rows])  # (S,K,3)
+    counts = per_session.sum(0)
     edges = np.sum([a.edges for a in rows], axis=0)
     episodes = np.sum([a.episodes for a in rows], axis=0)
     pooled = f1_score(counts)
-    spread = f1_intervals(np.stack([a.contacts for a in rows]))
+    spread = f1_intervals(per_session)
     plain = [a for a in rows if not a.chair_ambiguous]
     if plain:
         print(f"chair: worst vertex {max(a.chair_mm for a in plain):.2f} mm, rotation "
@@ -422,9 +424,8 @@ def main(argv: list[str] | None = None) -> int:
               f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
               f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
               f"{near}")
-    ok = [label for label in labels if not isinstance(results[label], str)]
     for k in HANDS:
-        worst = most_wrong(ok, np.stack([a.contacts for a in rows]), k)
+        worst = most_wrong(ok, per_session, k)
         if worst:
             print(f"{CONTACT_NAMES[k]}: most wrong frames in "
                   + ", ".join(f"{label} ({n})" for label, n in worst))
