@@ -344,6 +344,30 @@ def test_cli(tmp_path):
     assert missing.returncode == 2 and "no such session folder" in missing.stderr
 
 
+def test_cli_set_reruns_only_the_stages_it_changes(run, tmp_path, capsys):
+    """``--set contacts...``: calibration, chair and body from the cache, contacts again with
+    the new thresholds (entering at 3 cm and leaving at 4 can only add contact frames)."""
+    from couch.tools.process import main as process_main
+
+    out = tmp_path / "out"
+    shutil.copytree(run.output / "cache", out / "cache")
+    code = process_main([str(FIXTURE), "-o", str(out), "--no-report", "-q",
+                         "--set", "contacts.leave_distance=0.04",
+                         "--set", "contacts.enter_distance=0.03"])
+    assert code == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    for stage, status in zip(STAGES, ("cached", "cached", "cached", "ran"), strict=True):
+        assert f"{stage} {status}" in printed
+    before, after = read_processed(run.processed), read_processed(out / "processed.h5")
+    assert np.array_equal(before.joints, after.joints)
+    assert (after.contact_active >= before.contact_active).all()
+    hands = [CONTACT_NAMES.index(n) for n in ("left_hand", "right_hand", "pelvis")]
+    near = (before.quality["contact_distance"][:, hands] > 0.025) & (
+        before.quality["contact_distance"][:, hands] < 0.03)
+    assert after.contact_active[:, hands].sum() > before.contact_active[:, hands].sum() or \
+        not near.any()
+
+
 def test_bad_arguments_raise():
     with pytest.raises(ProcessError, match="unknown stage"):
         run_pipeline(FIXTURE, stages="fit")

@@ -22,6 +22,7 @@ from couch.fitting.pipeline import (
     ProcessError,
     run_pipeline,
 )
+from couch.overrides import with_overrides
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chair-frames", type=int, default=None, metavar="N",
                     help="register the chair on N frames spread over the session (default 40; "
                          "0: every frame)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change one setting of the processing config (repeatable), e.g. "
+                         "fit.body.clothing_margin=0.005 or contacts.enter_distance=0.025; the "
+                         "keys are ProcessConfig's fields, dotted (stages whose settings "
+                         "change are recomputed, the others come from the cache)")
     ap.add_argument("--force", action="store_true", help="ignore cached stage results")
     ap.add_argument("--no-report", action="store_true", help="do not write report/")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars or warnings")
@@ -96,6 +102,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.chair_frames < 0:
             ap.error("--chair-frames must be >= 0")
         config = ProcessConfig(chair_frames=args.chair_frames)
+    try:
+        config = with_overrides(config, args.set)
+    except ValueError as exc:
+        ap.error(str(exc))
     if args.extrinsics is not None and not Path(args.extrinsics).is_file():
         ap.error(f"--extrinsics {args.extrinsics}: no such file")
     try:

@@ -17,7 +17,9 @@ rigid transform that maps our camera centres onto the true ones, so the calibrat
 in every number.
 
 Run: ``python -m couch.tools.bench.accuracy [-o DIR] [--sessions N] [--fps F] [--duration S]
-[--threads K] [--jobs J] [--seed-offset K [K ...]]`` (several offsets pool their sessions;
+[--threads K] [--jobs J] [--seed-offset K [K ...]] [--set KEY=VALUE ...] [--reuse]`` (several
+offsets pool their sessions; ``--set`` changes a processing setting as ``couch-process --set``
+does, and ``--reuse`` with a kept ``-o`` folder re-runs only the stages it changes;
 ``--jobs`` runs J sessions at a time in spawned processes, the printed pooled numbers the same
 as one at a time). A session takes about 1-3 min to simulate and process at 15 fps, 8 s.
 """
@@ -51,6 +53,7 @@ from couch.fitting import (
     mpjpe,
 )
 from couch.geometry import apply_transform, fit_rigid_transform
+from couch.overrides import with_overrides
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
@@ -298,10 +301,12 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
     )
 
 
-def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float
-         ) -> SessionAccuracy | str:
-    """One session simulated (unless ``work`` holds it), processed and measured; a string says
-    why it could not be."""
+def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float,
+         overrides: tuple[str, ...] = (), reuse: bool = False) -> SessionAccuracy | str:
+    """One session simulated (unless ``work`` holds it), processed (``overrides``: ``--set``
+    items on the default :class:`ProcessConfig`; ``reuse``: cached stage results whose inputs
+    and settings are unchanged serve, else every stage runs) and measured; a string says why
+    it could not be."""
     from couch.tools.sim.session import NoPlausibleSequence, SessionConfig, simulate_session
 
     root = work / name
@@ -312,20 +317,25 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
                                                  duration=duration, **settings), progress=False)
         except NoPlausibleSequence as e:
             return f"not simulated: {e}"
-    result = couch.process(root, work / f"{name}.out", force=True, report=False)
+    config = with_overrides(ProcessConfig(), overrides)
+    result = couch.process(root, work / f"{name}.out", config=config, force=not reuse,
+                           report=False)
     if not result.ok:
         return f"processing failed at {result.fault[0]}: {result.fault[1]}"
     return session_accuracy(result, read_processed(root / "ground_truth.h5"),
-                            json.loads((root / "truth.json").read_text()))
+                            json.loads((root / "truth.json").read_text()),
+                            contact_model=config.contact_model)
 
 
 def _timed(label: str, name: str, settings: dict[str, Any], work: Path, fps: float,
-           duration: float, threads: int | None) -> tuple[str, SessionAccuracy | str, float]:
+           duration: float, threads: int | None, overrides: tuple[str, ...] = (),
+           reuse: bool = False) -> tuple[str, SessionAccuracy | str, float]:
     """:func:`_one` in a worker process: (label, its result, seconds)."""
     if threads:
         torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    return label, _one(name, settings, work, fps, duration), time.perf_counter() - t0
+    return (label, _one(name, settings, work, fps, duration, overrides, reuse),
+            time.perf_counter() - t0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,7 +355,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="add this to every session's simulator seed: the same kinds of "
                          "session on other draws (held out from whatever was tuned on these); "
                          "several offsets pool their sessions")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="process with this setting changed (repeatable; couch-process --set)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="let cached stage results whose inputs and settings are unchanged "
+                         "serve (with -o: e.g. calibration and chair when only body settings "
+                         "are --set); default: every stage runs")
     args = ap.parse_args(argv)
+    try:
+        with_overrides(ProcessConfig(), args.set)  # a bad key fails here, not in every job
+    except ValueError as exc:
+        ap.error(str(exc))
     if not 1 <= args.sessions <= len(SESSIONS):
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
     if args.jobs < 1:
@@ -371,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, settings in SESSIONS[:args.sessions]:
                 tasks.append((f"{name}{offset:+d}" if offset else name, name,
                               dict(settings, seed=settings["seed"] + offset), work, args.fps,
-                              args.duration, args.threads))
+                              args.duration, args.threads, tuple(args.set), args.reuse))
         if args.jobs == 1:
             for task in tasks:
                 report(*_timed(*task))
