@@ -42,7 +42,7 @@ def _parse(tp: Any, text: str, key: str) -> Any:
         if tp is Path:
             return Path(text)
         if typing.get_origin(tp) is tuple:
-            args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+            args = [a for a in typing.get_args(tp) if a is not Ellipsis] or [float]
             parts = [p for p in text.split(",") if p.strip()]
             kinds = args if len(args) == len(parts) else [args[0]] * len(parts)
             return tuple(k(p) for k, p in zip(kinds, parts, strict=True))

@@ -413,6 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{len(rows)} sessions (seed offset {offsets}), {args.fps:g} fps, "
           f"{args.duration:g} s each "
           f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})"
+          + (f"; settings changed: {', '.join(args.set)}" if args.set else "")
           + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
     if not rows:
         return 1
