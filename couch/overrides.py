@@ -27,8 +27,8 @@ _FALSE = {"false", "no", "0", "off"}
 
 
 def _parse(tp: Any, text: str, key: str) -> Any:
-    optional = _strip_optional(tp) is not tp
-    tp = _strip_optional(tp)
+    base = _strip_optional(tp)
+    optional, tp = base is not tp, base
     if optional and text.strip().lower() == "none":
         return None
     try:
@@ -52,7 +52,7 @@ def _parse(tp: Any, text: str, key: str) -> Any:
 
 
 def _replace(obj: Any, path: list[str], text: str, key: str) -> Any:
-    names = {f.name: f for f in dataclasses.fields(obj) if f.init}
+    names = {f.name for f in dataclasses.fields(obj) if f.init}
     name = path[0]
     if name not in names:
         raise ValueError(f"--set {key}: {type(obj).__name__} has no setting {name!r} (it has "
@@ -67,14 +67,12 @@ def _replace(obj: Any, path: list[str], text: str, key: str) -> Any:
             return dataclasses.replace(obj, **{name: value})
         except ValueError as exc:
             raise ValueError(f"--set {key}={text}: {exc}") from None
+    cls = _strip_optional(tp)
+    if not dataclasses.is_dataclass(cls):
+        raise ValueError(f"--set {key}: {name} is not a group of settings")
     inner = getattr(obj, name)
     if inner is None:
-        cls = _strip_optional(tp)
-        if not dataclasses.is_dataclass(cls):
-            raise ValueError(f"--set {key}: {name} is not a group of settings")
         inner = cls()
-    elif not dataclasses.is_dataclass(inner):
-        raise ValueError(f"--set {key}: {name} is not a group of settings")
     return dataclasses.replace(obj, **{name: _replace(inner, path[1:], text, key)})
 
 

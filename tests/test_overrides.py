@@ -32,12 +32,13 @@ class _Outer:
 
 
 def test_each_field_type_is_parsed():
-    c = with_overrides(_Outer(), ["inner.scale=0.25", "inner.steps=7", "inner.name=b c",
-                                  "inner.on=no", "inner.where=/x/y", "inner.band=1,2,3",
-                                  "limit=none"])
+    given = _Outer()
+    c = with_overrides(given, ["inner.scale=0.25", "inner.steps=7", "inner.name=b c",
+                               "inner.on=no", "inner.where=/x/y", "inner.band=1,2,3",
+                               "limit=none"])
     assert c.inner == _Inner(0.25, 7, "b c", False, Path("/x/y"), (1.0, 2.0, 3.0))
     assert c.limit is None and c.maybe is None
-    assert _Outer() == _Outer()  # the input is untouched (frozen copies)
+    assert given == _Outer()  # the input is untouched (frozen copies)
 
 
 def test_a_group_left_to_its_default_is_filled_in():

@@ -361,10 +361,10 @@ def test_cli_set_reruns_only_the_stages_it_changes(run, tmp_path, capsys):
     before, after = read_processed(run.processed), read_processed(out / "processed.h5")
     assert np.array_equal(before.joints, after.joints)
     assert (after.contact_active >= before.contact_active).all()
-    hands = [CONTACT_NAMES.index(n) for n in ("left_hand", "right_hand", "pelvis")]
-    near = (before.quality["contact_distance"][:, hands] > 0.025) & (
-        before.quality["contact_distance"][:, hands] < 0.03)
-    assert after.contact_active[:, hands].sum() > before.contact_active[:, hands].sum() or \
+    parts = [CONTACT_NAMES.index(n) for n in ("left_hand", "right_hand", "pelvis")]
+    near = (before.quality["contact_distance"][:, parts] > 0.025) & (
+        before.quality["contact_distance"][:, parts] < 0.03)
+    assert after.contact_active[:, parts].sum() > before.contact_active[:, parts].sum() or \
         not near.any()
 
 
