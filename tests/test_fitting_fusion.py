@@ -64,6 +64,18 @@ def _posed(model, params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
     return out.joints.detach().numpy(), out.vertices.detach().numpy()
 
 
+def _on_floor(model, pose: np.ndarray) -> tuple[BodyParams, np.ndarray, np.ndarray]:
+    """(T,69) body poses at the origin, lifted so the first frame's soles are on the floor:
+    the params and their posed joints and vertices."""
+    t = len(pose)
+    params = BodyParams(np.zeros((t, 3)), pose, np.zeros((t, 3)), np.zeros(10))
+    _, verts = _posed(model, params)
+    transl = np.zeros((t, 3))
+    transl[:, 1] = -verts[0, :, 1].min()  # soles on the floor
+    params = dataclasses.replace(params, transl=transl.astype(np.float32))
+    return (params, *_posed(model, params))
+
+
 @pytest.fixture(scope="module")
 def truth(model):
     time_s = np.arange(T) / FPS
@@ -79,13 +91,7 @@ def truth(model):
     lift[LIFT[0]:LIFT[1]] = np.sin(np.pi * np.arange(n) / (n - 1)) ** 2
     _set(pose, "left_hip", np.stack([-0.9 * lift, 0 * lift, 0 * lift], 1))
     _set(pose, "left_knee", np.stack([1.4 * lift, 0 * lift, 0 * lift], 1))
-    go = np.zeros((T, 3))
-    params = BodyParams(go, pose, np.zeros((T, 3)), np.zeros(10))
-    _, verts = _posed(model, params)
-    transl = np.zeros((T, 3))
-    transl[:, 1] = -verts[0, :, 1].min()  # soles on the floor
-    params = dataclasses.replace(params, transl=transl.astype(np.float32))
-    joints, verts = _posed(model, params)
+    params, joints, verts = _on_floor(model, pose)
     contact = np.ones((T, 4), dtype=bool)
     contact[LIFT[0] + 1:LIFT[1] - 1, :2] = False  # left heel and toe off the floor
     return params, joints, foot_points(verts, model.keypoint_ids), contact
@@ -281,12 +287,7 @@ def test_constant_misalignment_carries_into_an_unseen_posture(model):
                                                   np.full(t, -1.3 * s)], 1))
         _set(pose, f"{side}_elbow", np.stack([0 * bend, -1.6 * s * bend, 0 * bend], 1))
         _set(pose, f"{side}_wrist", np.stack([0.5 * bend, 0 * bend, 0 * bend], 1))
-    params = BodyParams(np.zeros((t, 3)), pose, np.zeros((t, 3)), np.zeros(10))
-    joints, verts = _posed(model, params)
-    transl = np.zeros((t, 3))
-    transl[:, 1] = -verts[0, :, 1].min()
-    params = dataclasses.replace(params, transl=transl.astype(np.float32))
-    joints, _ = _posed(model, params)
+    params, joints, _ = _on_floor(model, pose)
     contact = np.ones((t, 4), dtype=bool)
     arms = [JOINT_INDEX[f"{side}_{j}"] for side in ("left", "right")
             for j in ("collar", "shoulder", "elbow", "wrist", "hand")]
