@@ -24,7 +24,7 @@ if os.environ.get("CI"):
 #: Test files that share the session-scoped :func:`ci_run` (every network trained, ~minutes):
 #: one worker runs them all, so the training happens once.
 TRAINED = ("test_synthesis_controller", "test_synthesis_evaluation", "test_synthesis_plans",
-           "test_synthesis_precision", "test_synthesis_train")
+           "test_synthesis_precision", "test_synthesis_select", "test_synthesis_train")
 #: Units of work handed out first, longest first (each 2-8 minutes on 2 cores, measured with
 #: ``--durations``): a worker that starts a long unit last keeps the suite waiting while the
 #: other idles.
