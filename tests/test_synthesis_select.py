@@ -85,3 +85,6 @@ def test_couch_select_bad_input(candidates, tmp_path, capsys):
     assert "no trained pose + control pair nor baseline" in capsys.readouterr().err
     assert main([str(candidates[0]), "-o", str(tmp_path / "o"), "--trials", "0"]) == 2
     assert not (tmp_path / "o").exists()
+    (tmp_path / "file").write_text("")
+    assert main([str(empty), "-o", str(tmp_path / "file")]) == 2
+    assert "file: not a folder" in capsys.readouterr().err

@@ -2,17 +2,18 @@
 validation chairs.
 
 The ``cpu`` recipe's trainings differ by seed more than by anything else tried (README,
-*Results so far*: couch's ACE 1.71-2.60 cm on one test set over two trainings of the same
-data, the baseline 3.95-4.13), and a network's validation loss does not rank trainings by how
-they synthesise. So train a few (``couch-train ... --seed S``, one run folder each) and let
-this tool score them the way they will be used: every candidate PoseNet paired with every
-candidate ControlNet (the two are trained apart, so any pair is a COUCH), and every candidate
-baseline, each run closed loop through :func:`couch.synthesis.evaluation.evaluate` on the same
-``--chairs`` new simulated chairs x ``--trials`` trials. The pair with the lowest ACE and the
-baseline with the lowest ACE are copied into ``RUN`` (``best.pt`` and ``stats.npz`` of each,
-with its ``log.csv`` and ``curves.png``; ContactNet from the chosen PoseNet's candidate, or
-the first that has one), beside ``RUN/selection.md`` and ``RUN/selection.json``: every
-candidate's row, what was kept and where it came from.
+*Results so far*: couch's ACE 1.71-2.60 cm on one test set over three trainings of the same
+data, the baseline 3.95-5.06), and a network's validation loss does not rank trainings by how
+they synthesise (each seed holds out other chairs for it). So train a few (``couch-train ...
+--seed S``, one run folder each) and let this tool score them the way they will be used: every
+candidate PoseNet paired with every candidate ControlNet (the two are trained apart, so any
+pair is a COUCH), and every candidate baseline, each run closed loop through
+:func:`couch.synthesis.evaluation.evaluate` on the same ``--chairs`` new simulated chairs x
+``--trials`` trials. The pair with the lowest ACE and the baseline with the lowest ACE are
+copied into ``RUN`` (``best.pt`` and ``stats.npz`` of each, with its ``log.csv`` and
+``curves.png``; ContactNet from the chosen PoseNet's candidate, or the first that has one),
+beside ``RUN/selection.md`` and ``RUN/selection.json``: every candidate's row, what was kept
+and where it came from.
 
 Both methods are chosen by the same rule on the same chairs, so a comparison of the selected
 run stays fair; report it on chairs the selection did not see (``couch-eval --seed`` other
@@ -121,6 +122,8 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
     if chairs < 1 or trials < 1 or seconds <= 0:
         raise ValueError("chairs, trials and seconds must be positive")
     out = Path(out)
+    if out.exists() and not out.is_dir():  # checked before the minutes of scoring
+        raise ValueError(f"{out}: not a folder")
     taken = [n for n in ("pose", "control", "baseline", "contact") if (out / n).exists()]
     if taken:
         raise ValueError(f"{out}: already holds {', '.join(taken)}; choose a new folder")
@@ -219,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sel = select_networks(args.candidates, args.output, chairs=args.chairs,
                               trials=args.trials, seconds=args.seconds, seed=args.seed,
                               progress=not args.quiet)
-    except (FileNotFoundError, ValueError, SchemaError) as e:
+    except (OSError, ValueError, SchemaError) as e:
         print(f"couch-select: error: {e}", file=sys.stderr)
         return 2
     print(format_table(sel.rows))
