@@ -67,6 +67,11 @@ class Selection:
     rows: dict[str, dict[str, float]] = field(default_factory=dict)
     settings: dict[str, float] = field(default_factory=dict)
 
+    def sources(self) -> dict[str, Path | None]:
+        """Network name -> the candidate run it was copied from."""
+        return {"pose": self.pose, "control": self.control, "baseline": self.baseline,
+                "contact": self.contact}
+
 
 def _has(run: Path, net: str) -> bool:
     return (run / net / "best.pt").is_file() and (run / net / "stats.npz").is_file()
@@ -133,19 +138,21 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
     if not (poses and controls) and not baselines:
         raise ValueError(f"{', '.join(map(str, runs))}: no trained pose + control pair nor "
                          f"baseline (best.pt and stats.npz) to select from")
-    pairs = [(p, c) for p in poses for c in controls]
+    # method name -> candidate indices: (PoseNet, ControlNet) for a pair, (baseline,) else
+    picks = {f"couch #{p} + #{c}": (p, c) for p in poses for c in controls}
+    picks.update({f"baseline #{b}": (b,) for b in baselines})
     with tempfile.TemporaryDirectory(prefix=".couch-select-") as tmp:
         synths: dict[str, Synthesizer] = {}
-        for p, c in pairs:
+        for name, idx in picks.items():
+            if len(idx) == 1:
+                synths[name] = Synthesizer(runs[idx[0]], "baseline")
+                continue
             # A run folder of symbolic links: the controller loads RUN/pose and RUN/control.
-            pair = Path(tmp) / f"pair_{p}_{c}"
+            pair = Path(tmp) / f"pair_{idx[0]}_{idx[1]}"
             pair.mkdir()
-            (pair / "pose").symlink_to((runs[p] / "pose").resolve(), target_is_directory=True)
-            (pair / "control").symlink_to((runs[c] / "control").resolve(),
-                                          target_is_directory=True)
-            synths[f"couch #{p} + #{c}"] = Synthesizer(pair, "couch")
-        for b in baselines:
-            synths[f"baseline #{b}"] = Synthesizer(runs[b], "baseline")
+            for net, i in zip(("pose", "control"), idx, strict=True):
+                (pair / net).symlink_to((runs[i] / net).resolve(), target_is_directory=True)
+            synths[name] = Synthesizer(pair, "couch")
         _check_features(synths)
         rows, _, _ = evaluate(synths, simulated_chairs(chairs, seed), trials=trials,
                               seconds=seconds, seed=seed, progress=progress)
@@ -156,11 +163,8 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
 
     chosen_pair = best("couch ")
     chosen_base = best("baseline ")
-    pose = control = baseline = None
-    if chosen_pair is not None:
-        pose, control = pairs[list(synths).index(chosen_pair)]
-    if chosen_base is not None:
-        baseline = int(chosen_base.removeprefix("baseline #"))
+    pose, control = picks[chosen_pair] if chosen_pair is not None else (None, None)
+    baseline = picks[chosen_base][0] if chosen_base is not None else None
     contacts = [i for i, r in enumerate(runs) if _has(r, "contact")]
     contact = (pose if pose in contacts else contacts[0]) if contacts else None
     sel = Selection(*(runs[i] if i is not None else None
@@ -168,8 +172,7 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
                     rows=rows, settings={"chairs": chairs, "trials": trials,
                                          "seconds": seconds, "seed": seed})
     out.mkdir(parents=True, exist_ok=True)
-    for net, src in (("pose", sel.pose), ("control", sel.control),
-                     ("baseline", sel.baseline), ("contact", sel.contact)):
+    for net, src in sel.sources().items():
         if src is not None:
             _copy_net(src / net, out / net)
     _write(out, runs, sel, chosen_pair, chosen_base)
@@ -179,9 +182,8 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
 def _write(out: Path, runs: list[Path], sel: Selection, pair: str | None,
            base: str | None) -> None:
     names = "\n".join(f"- #{i}: `{r}`" for i, r in enumerate(runs))
-    kept = "\n".join(f"- {net}: `{src}`" for net, src in (
-        ("pose", sel.pose), ("control", sel.control), ("baseline", sel.baseline),
-        ("contact", sel.contact)) if src is not None)
+    kept = "\n".join(f"- {net}: `{src}`" for net, src in sel.sources().items()
+                     if src is not None)
     s = sel.settings
     text = (f"couch-select: {s['chairs']} chairs x {s['trials']} trials x {s['seconds']:g} s "
             f"(seed {s['seed']}); the lowest ACE kept: {pair or '-'}, {base or '-'}\n\n"
@@ -190,9 +192,8 @@ def _write(out: Path, runs: list[Path], sel: Selection, pair: str | None,
         tmp.write_text(text)
     doc = {"candidates": [str(r) for r in runs], "settings": sel.settings, "rows": sel.rows,
            "chosen": {"couch": pair, "baseline": base},
-           "sources": {net: (str(src) if src is not None else None) for net, src in (
-               ("pose", sel.pose), ("control", sel.control), ("baseline", sel.baseline),
-               ("contact", sel.contact))}}
+           "sources": {net: (str(src) if src is not None else None)
+                       for net, src in sel.sources().items()}}
     with atomic_path(out / "selection.json") as tmp:
         tmp.write_text(json.dumps(doc, indent=2, default=float) + "\n")
 
