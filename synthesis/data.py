@@ -209,6 +209,7 @@ def feature_config_from_json(text: str) -> FeatureConfig:
     values = json.loads(text)
     # runs and caches from before the setting existed: their lines end on the contact
     values.setdefault("control_line_end", 0.0)
+    values.setdefault("push_off_window", None)
     return FeatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 

@@ -76,6 +76,12 @@ class FeatureConfig:
     # the contact brings the palm closest: 7 cm above and 3 cm below were both worse (README,
     # Results so far), as PoseNet follows ControlNet's trajectory only part of the way.
     control_line_end: float = 0.0
+    # s: a hand contact run that starts this close before the pelvis leaves the seat (or
+    # after it, with no later sit) is the stand-up's push-off, not part of the sit: it is no
+    # control target (mask off, local phase 0), so the control of a seated character never
+    # means "stand up now" as it did in the data (sit_contact_flags). None: every run is a
+    # target (runs and caches from before the setting).
+    push_off_window: float | None = 1.0
     sit_transition: float = 1.5  # s: longest sit-down transition (global phase 0 -> 1)
     step_min_interval: float = 0.4  # s: closest two left-foot strikes may be
     walk_cycle: float = 1.0  # s: nominal cycle when fewer than two strikes are found
@@ -584,6 +590,39 @@ def hand_targets(active: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np
     return targets, mask & np.all(np.isfinite(targets), axis=-1)
 
 
+def sit_contact_flags(active: np.ndarray, sitting: np.ndarray, window: int | None
+                      ) -> np.ndarray:
+    """(T,) one hand's contact flags without the runs that push off to stand up.
+
+    Args:
+        active: (T,) bool hand contact flags; sitting: (T,) bool pelvis contact flags;
+        window: frames (:attr:`FeatureConfig.push_off_window`); None keeps every run.
+    Returns:
+        ``active`` without each run that starts within ``window`` frames of a stand-up (the
+        end of a sit before the last frame), or standing after one with no sit following.
+        Pelvis runs less than ``window`` apart are one sit (a landing's bounce). Half the
+        simulated sits end standing, nearly all pushing off a hand first: as a control target
+        that run made a seated character's control read "stand up now" (README, *Results so
+        far*, session 49).
+    """
+    out = np.asarray(active, bool).copy()
+    if window is None:
+        return out
+    starts, ends = contact_runs(sitting)
+    keep = np.ones(len(starts), bool)
+    keep[1:] = starts[1:] - ends[:-1] > window  # a sit's first run
+    sit_starts = starts[keep]
+    sit_ends = np.append(ends[np.flatnonzero(keep)[1:] - 1], ends[-1:])
+    stand_ups = sit_ends[sit_ends < len(out) - 1]
+    for s, e in zip(*contact_runs(out), strict=True):
+        around = np.any(np.abs(s - stand_ups) <= window)
+        seated = np.any((sit_starts <= s) & (s <= sit_ends))
+        after = not seated and np.any(s > stand_ups) and not np.any(sit_starts > s)
+        if around or after:
+            out[s:e + 1] = False
+    return out
+
+
 def local_phase(active: np.ndarray, hand_speed: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
     """(T,) local phase of one hand in [0, 1]: 0 away from contacts, rising linearly over the
     reach (from where the hand speed first exceeds ``cfg.hand_approach_speed`` within
@@ -961,12 +1000,14 @@ def sequence_features(session: ProcessedSession, config: FeatureConfig | None = 
     hands = joints[:, list(cfg.hand_joints)]  # (T, 2, 3)
     hand_speed = np.linalg.norm(velocities(hands, fps), axis=-1)
     targets, mask, phases = [], [], []
+    window = None if cfg.push_off_window is None else _frames(cfg.push_off_window, fps)
     for h, name in enumerate(HANDS):
         i = names.index(name)
-        tgt, m = hand_targets(active[:, i], np.asarray(session.contact_points[:, i], np.float64))
+        flags = sit_contact_flags(active[:, i], sitting, window)
+        tgt, m = hand_targets(flags, np.asarray(session.contact_points[:, i], np.float64))
         targets.append(tgt)
         mask.append(m)
-        phases.append(local_phase(active[:, i], hand_speed[:, h], cfg))
+        phases.append(local_phase(flags, hand_speed[:, h], cfg))
     targets, mask, phases = np.stack(targets, 1), np.stack(mask, 1), np.stack(phases, 1)
     mask &= control_near(root, targets, cfg.control_radius)
     hand_phases = phases[sample_indices(n, cfg.trajectory_offsets)].transpose(0, 2, 1)

@@ -1192,6 +1192,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="metres above each contact where ControlNet's straight line ends "
                         f"(default {FeatureConfig().control_line_end:g}; changes the features, "
                         "so the run's cache is rebuilt)")
+    p.add_argument("--push-off-window", default=None, metavar="S|none",
+                   help="seconds around a stand-up within which a hand's contact is its "
+                        "push-off, no control target (default "
+                        f"{FeatureConfig().push_off_window:g}; none: every contact is one, "
+                        "as runs before session 49; changes the features)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1,
@@ -1239,6 +1244,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"couch-train: error: --hand-weight must be positive, got {args.hand_weight}",
               file=sys.stderr)
         return 2
+    features: dict[str, float | None] = {}
+    if args.control_line_end is not None:
+        features["control_line_end"] = args.control_line_end
+    if args.push_off_window is not None:
+        try:
+            window = (None if args.push_off_window.lower() == "none"
+                      else float(args.push_off_window))
+        except ValueError:
+            window = -1.0
+        if window is not None and not window >= 0:
+            print(f"couch-train: error: --push-off-window must be seconds >= 0 or none, got "
+                  f"{args.push_off_window!r}", file=sys.stderr)
+            return 2
+        features["push_off_window"] = window
     overrides = {k: v for k, v in (("rollout_epochs", args.rollout_epochs),
                                    ("rollout", args.rollout),
                                    ("hand_weight", args.hand_weight)) if v is not None}
@@ -1253,8 +1272,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        resume=not args.no_resume, progress=not args.quiet, threads=args.threads,
                        configs=configs, keep_epochs=args.keep_epochs,
                        stream_rows=args.stream,
-                       features=(None if args.control_line_end is None else
-                                 FeatureConfig(control_line_end=args.control_line_end)))
+                       features=FeatureConfig(**features) if features else None)
     except (FileNotFoundError, ValueError, SchemaError) as e:
         print(f"couch-train: error: {e}", file=sys.stderr)
         return 2

@@ -35,6 +35,7 @@ from couch.synthesis.features import (
     root_speed,
     root_transforms,
     sequence_features,
+    sit_contact_flags,
     to_root,
 )
 from couch.tools.sim.session import simulate_motion_dataset
@@ -192,8 +193,12 @@ def test_trajectory_and_goals(session, features):
 def test_hand_phases_and_control(session, features):
     fps = int(CFG.fps)
     checked = 0
+    sitting = session.contact_active[:, session.contact_names.index("pelvis")]
     for h, name in enumerate(("left_hand", "right_hand")):
-        active = session.contact_active[:, session.contact_names.index(name)]
+        # the runs of the sit; a stand-up's push-off is no control target
+        window = None if CFG.push_off_window is None else round(CFG.push_off_window * CFG.fps)
+        active = sit_contact_flags(session.contact_active[:, session.contact_names.index(name)],
+                                   sitting, window)
         starts, ends = contact_runs(active)
         assert len(starts) > 0, name
         phase = features.hand_phases[:, h, 6]  # the current sample
@@ -417,3 +422,60 @@ def test_control_line_can_end_above_the_contact():
     # height 0 is the line onto the contact itself
     np.testing.assert_allclose(control_line(hand, target, mask, root, samples=5)[0, -1], 0.0,
                                atol=1e-12)
+
+
+def _flags(n: int, *runs: tuple[int, int]) -> np.ndarray:
+    out = np.zeros(n, bool)
+    for s, e in runs:
+        out[s:e + 1] = True
+    return out
+
+
+def test_push_off_runs_are_no_sit_contacts():
+    sitting = _flags(100, (20, 49), (80, 99))  # sits, stands up at frame 49, sits again
+    hand = _flags(100, (15, 22), (30, 33), (45, 47), (52, 55), (62, 66), (95, 97))
+    kept = sit_contact_flags(hand, sitting, window=10)
+    # the touch of the sit and one well before the stand-up stay; the push-offs within 10
+    # frames of the stand-up (before or after it) go; a later run before the next sit is that
+    # sit's, as is everything while the last sit lasts to the end of the sequence
+    np.testing.assert_array_equal(kept, _flags(100, (15, 22), (30, 33), (62, 66), (95, 97)))
+    # with no later sit, every run after the stand-up is part of it
+    alone = sit_contact_flags(_flags(90, (15, 22), (70, 75)), _flags(90, (20, 49)), window=10)
+    np.testing.assert_array_equal(alone, _flags(90, (15, 22)))
+    # a landing's bounce (pelvis off for fewer than `window` frames) is no stand-up
+    bounce = _flags(100, (20, 40), (45, 99))
+    np.testing.assert_array_equal(sit_contact_flags(hand, bounce, window=10), hand)
+    # the window is what separates them, and None turns the rule off
+    assert sit_contact_flags(hand, sitting, window=15)[30:34].all()
+    assert not sit_contact_flags(hand, sitting, window=15)[45:48].any()
+    assert not sit_contact_flags(hand, sitting, window=20)[30:34].any()
+    np.testing.assert_array_equal(sit_contact_flags(hand, sitting, None), hand)
+
+
+def test_push_off_leaves_the_seated_control_off(session):
+    """A sit that ends in a push-off: the seated frames before it have no control target
+    (the data's old tell for "stand up now"), and the old setting still gives one."""
+    names = list(session.contact_names)
+    hands = [names.index("left_hand"), names.index("right_hand")]
+    active = np.array(session.contact_active, bool)
+    points = np.array(session.contact_points, np.float32)
+    pelvis = names.index("pelvis")
+    sat = np.flatnonzero(active[:, pelvis])
+    assert len(sat) > 0 and sat[0] + 60 < len(active), "the simulated sequence must sit"
+    first, up = sat[0], sat[0] + 45
+    # the hands let go 10 frames after the landing, both push off just before standing up
+    active[first + 10:, hands] = False
+    push = np.arange(up - 3, up + 2)
+    active[np.ix_(push, hands)] = True
+    points[np.ix_(push, hands)] = session.joints[push][:, list(CFG.hand_joints)]
+    active[first:up + 1, pelvis] = True
+    active[up + 1:, pelvis] = False
+    standing = dataclasses.replace(session, contact_active=active, contact_points=points)
+    new = sequence_features(standing, dataclasses.replace(CFG, push_off_window=1.0))
+    old = sequence_features(standing, dataclasses.replace(CFG, push_off_window=None))
+    seated = np.arange(first + 26, up - 3)  # past the release of the sit's touch
+    assert old.hand_mask[seated].all()
+    assert not new.hand_mask[seated].any()
+    assert np.all(new.contact_inputs[seated] == 0)
+    assert np.all(new.hand_phases[seated, :, 6] == 0)
+    assert np.all(new.hand_phases[push, :, 6] == 0) and np.all(old.hand_phases[push, :, 6] == 1)

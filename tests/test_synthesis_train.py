@@ -702,6 +702,9 @@ def test_main_reports_bad_inputs(tmp_path, capsys):
     assert "--hand-weight must be positive" in capsys.readouterr().err
     assert main([str(foreign), "-o", str(tmp_path / "run"), "--stream", "0"]) == 2
     assert "--stream must be at least 1 row" in capsys.readouterr().err
+    for bad in ("-1", "soon", "nan"):
+        assert main([str(foreign), "-o", str(tmp_path / "run"), "--push-off-window", bad]) == 2
+        assert "--push-off-window must be seconds >= 0 or none" in capsys.readouterr().err
 
 
 def test_main_trains_and_resumes_finished_run(sim, trained, capsys):
