@@ -76,11 +76,11 @@ class FeatureConfig:
     # the contact brings the palm closest: 7 cm above and 3 cm below were both worse (README,
     # Results so far), as PoseNet follows ControlNet's trajectory only part of the way.
     control_line_end: float = 0.0
-    # s: a hand contact run that starts this close before the pelvis leaves the seat (or
-    # after it, with no later sit) is the stand-up's push-off, not part of the sit: it is no
-    # control target (mask off, local phase 0), so the control of a seated character never
-    # means "stand up now" as it did in the data (sit_contact_flags). None: every run is a
-    # target (runs and caches from before the setting).
+    # s: a hand contact run that starts this close to the pelvis leaving the seat (before or
+    # after), or standing after it with no later sit, is the stand-up's push-off, not part of
+    # the sit: no control target (mask off, local phase 0), so the control of a seated
+    # character never means "stand up now" as it did in the data (sit_contact_flags). None:
+    # every run is a target (runs and caches from before the setting).
     push_off_window: float | None = 1.0
     sit_transition: float = 1.5  # s: longest sit-down transition (global phase 0 -> 1)
     step_min_interval: float = 0.4  # s: closest two left-foot strikes may be
