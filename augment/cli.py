@@ -16,6 +16,7 @@ from pathlib import Path
 
 from couch.augment.dataset import augment_dataset, find_processed
 from couch.augment.ik import IKConfig
+from couch.cli import parse_args
 from couch.schema import SchemaError
 
 __all__ = ["main"]
@@ -75,11 +76,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``couch-augment``: exit 0 when sequences were kept, 1 when none, 2 on bad arguments."""
-    ap = _parser()
-    try:
-        args = ap.parse_args(argv)
-    except SystemExit as exc:   # argparse: --help (0) or a usage error (2)
-        return int(exc.code or 0)
+    args = parse_args(_parser(), argv)
+    if isinstance(args, int):  # --help or a usage error argparse printed
+        return args
     logging.basicConfig(level=logging.ERROR if args.quiet else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
 

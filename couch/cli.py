@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -41,6 +42,17 @@ def summarize(s: ProcessedSession) -> str:
         lines.append("quality        " + ", ".join(
             f"{k} {np.shape(v)}" for k, v in sorted(s.quality.items())))
     return "\n".join(lines)
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None
+               ) -> argparse.Namespace | int:
+    """``parser.parse_args(argv)``, or the exit code argparse chose (0 after ``--help``, 2 after
+    a usage error it has already printed), so that a ``main`` can return it instead of raising
+    ``SystemExit`` from inside a caller's process (tests, notebooks)."""
+    try:
+        return parser.parse_args(argv)
+    except SystemExit as e:
+        return e.code if isinstance(e.code, int) else 2
 
 
 def inspect_main(argv: list[str] | None = None) -> int:

@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from couch.atomic import atomic_path
 from couch.body.skeleton import CONTACT_NAMES, JOINT_INDEX
+from couch.cli import parse_args
 from couch.schema import SchemaError
 from couch.synthesis.data import (
     FeatureCache,
@@ -1219,10 +1220,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``couch-train``; returns 0 on success, 2 on bad arguments or input."""
-    try:
-        args = _parser().parse_args(argv)
-    except SystemExit as e:  # argparse already printed the usage line and the error
-        return int(e.code) if isinstance(e.code, int) else 2
+    args = parse_args(_parser(), argv)
+    if isinstance(args, int):  # --help or a usage error argparse printed
+        return args
     if args.epochs is not None and args.epochs < 1:
         print(f"couch-train: error: --epochs must be at least 1, got {args.epochs}",
               file=sys.stderr)

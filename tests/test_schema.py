@@ -149,3 +149,18 @@ def test_atomic_write_gives_ordinary_permissions(tmp_path, processed_session):
     umask = os.umask(0)
     os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_cli_parse_args_returns_argparse_exit_codes(capsys):
+    """A ``main`` returns argparse's exit code instead of raising: 0 after --help, 2 after a
+    usage error (whose message argparse printed), the namespace otherwise."""
+    import argparse
+
+    from couch.cli import parse_args
+
+    p = argparse.ArgumentParser(prog="x")
+    p.add_argument("--n", type=int)
+    assert parse_args(p, ["--help"]) == 0
+    assert parse_args(p, ["--n", "a"]) == 2
+    assert "invalid int value" in capsys.readouterr().err
+    assert parse_args(p, ["--n", "3"]).n == 3

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from couch.atomic import atomic_path
+from couch.cli import parse_args
 from couch.schema import SchemaError
 from couch.synthesis import (
     PRECISIONS,
@@ -124,10 +125,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``couch-eval``; 0 on success, 2 on bad arguments or input."""
-    try:
-        args = _parser().parse_args(argv)
-    except SystemExit as e:
-        return int(e.code) if isinstance(e.code, int) else 2
+    args = parse_args(_parser(), argv)
+    if isinstance(args, int):  # --help or a usage error argparse printed
+        return args
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     try:
