@@ -28,7 +28,6 @@ from couch.atomic import atomic_path
 from couch.cli import parse_args
 from couch.schema import SchemaError
 from couch.synthesis import (
-    PRECISIONS,
     Synthesizer,
     contact_intervals,
     format_intervals,
@@ -43,6 +42,7 @@ from couch.synthesis.evaluation import (
     ground_truth_row,
 )
 from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
+from couch.tools.synthesize import add_runtime_arguments
 
 __all__ = ["load_trials", "main", "simulated_chairs"]
 
@@ -109,16 +109,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--contact-samples", type=int, default=16,
                    help="ContactNet samples per chair for contact APD (0: skip)")
     p.add_argument("--data", nargs="*", default=[], help="ground-truth sequences for APD")
-    p.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                   help="weights of the networks' large layers at run time: fp32 as trained, fp16 "
-                        "(outputs within ~1e-4 m, ~1.6x faster at batch 1) or int8 (CPU only)")
+    add_runtime_arguments(p)
     p.add_argument("--foot-lock", action="store_true",
                    help="every method: hold planted feet by leg IK after synthesis (a "
                         "post-process; off: the networks' own feet)")
-    p.add_argument("--which", default="best",
-                   help="checkpoints: best (lowest validation loss), last, an epoch N (kept "
-                        "by couch-train --keep-epochs), or per network, e.g. "
-                        "pose=14,baseline=10 (the others best)")
     p.add_argument("-q", "--quiet", action="store_true")
     return p
 

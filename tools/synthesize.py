@@ -99,6 +99,18 @@ def render_previews(result: SynthesisResult, out: Path, count: int, *, width: in
     return paths
 
 
+def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
+    """``--precision`` and ``--which``: how a CLI that runs a trained run's networks loads
+    them (``Synthesizer(precision=..., which=parse_which(...))``)."""
+    p.add_argument("--precision", default="fp32", choices=PRECISIONS,
+                   help="weights of the networks' large layers at run time: fp32 as trained, fp16 "
+                        "(outputs within ~1e-4 m, ~1.6x faster at batch 1) or int8 (CPU only)")
+    p.add_argument("--which", default="best",
+                   help="checkpoints: best (lowest validation loss), last, an epoch N (kept "
+                        "by couch-train --keep-epochs), or per network, e.g. "
+                        "pose=14,baseline=10 (the others best)")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="couch-synthesize",
@@ -128,12 +140,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--preview", type=int, default=1, metavar="K",
                    help="render MP4/PNG previews of the first K characters (0: none)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                   help="weights of the networks' large layers at run time: fp32 as trained, fp16 "
-                        "(outputs within ~1e-4 m, ~1.6x faster at batch 1) or int8 (CPU only)")
-    p.add_argument("--which", default="best",
-                   help="checkpoints: best, last, an epoch N (couch-train --keep-epochs), or "
-                        "per network, e.g. pose=14,control=best")
+    add_runtime_arguments(p)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
 
