@@ -1,4 +1,5 @@
-"""Command-line entry points of the core (``couch-inspect``)."""
+"""Command-line entry points of the core (``couch-inspect``) and the argument parsing that
+couch-train, -augment, -eval, -select and -synthesize share (:func:`parse_args`)."""
 
 from __future__ import annotations
 
