@@ -26,7 +26,8 @@ Public API, by module:
 - ``export.py``: :func:`save_npz`, :func:`to_processed`, :func:`write_processed_sessions`.
 - ``precision.py``: :func:`packed_copy` (a network's large layers as fbgemm fp16 or int8 GEMMs
   for inference; ``Synthesizer(precision=...)``), :data:`PRECISIONS`.
-- ``metrics.py``: ACE, AP@k, APD, contact APD, foot sliding, penetration, :func:`format_table`.
+- ``metrics.py``: ACE (and where a hand stopped, :func:`closest_hand_offsets`), AP@k, APD,
+  contact APD, foot sliding, penetration, :func:`format_table`.
 """
 
 from couch.synthesis.controller import METHODS, Scene, SynthesisResult, Synthesizer, yaw_transform
@@ -44,6 +45,7 @@ from couch.synthesis.metrics import (
     ace,
     apd,
     closest_hand_distances,
+    closest_hand_offsets,
     contact_apd,
     contact_intervals,
     contact_precision,
@@ -105,6 +107,7 @@ __all__ = [
     "apd",
     "build_cache",
     "closest_hand_distances",
+    "closest_hand_offsets",
     "contact_apd",
     "contact_intervals",
     "contact_precision",

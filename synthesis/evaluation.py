@@ -46,6 +46,7 @@ from couch.synthesis.metrics import (
     ace,
     apd,
     closest_hand_distances,
+    closest_hand_offsets,
     contact_apd,
     contact_precision,
     foot_sliding,
@@ -54,7 +55,7 @@ from couch.synthesis.metrics import (
 from couch.synthesis.sampling import sample_contacts
 
 __all__ = ["HAND_SPAN", "EvalChair", "contact_breakdown", "contact_candidates", "evaluate",
-           "ground_truth_row", "segment_apd", "trial_setup"]
+           "ground_truth_row", "miss_breakdown", "segment_apd", "trial_setup"]
 
 HAND_JOINTS = (JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"])
 
@@ -211,12 +212,16 @@ def _body_metrics(result: SynthesisResult, sets: np.ndarray, sdf, model
 def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair], *,
              trials: int = 8, seconds: float = 16.0, seed: int = 0,
              contact_samples: int = 0, progress: bool = True
-             ) -> tuple[dict[str, dict[str, float]], dict[str, np.ndarray], np.ndarray]:
+             ) -> tuple[dict[str, dict[str, float]], dict[str, np.ndarray], np.ndarray,
+                        dict[str, dict[str, np.ndarray]]]:
     """Run the protocol. Returns (table rows ``{method: {metric: value}}``, raw per-trial
-    closest hand-surface distances ``{method: (chairs*trials, 2)}`` in m, and what each asked
+    closest hand-surface distances ``{method: (chairs*trials, 2)}`` in m, what each asked
     contact was (chairs*trials, 2): ``"<chair kind> <part>"``, the kind being the chair's name
     without a trailing ``_<number>`` (``"sofa armrest"``; ``""``: none asked), for
-    :func:`contact_breakdown`).
+    :func:`contact_breakdown`, and where each hand missed, for :func:`miss_breakdown`:
+    ``{method: {"offset": (chairs*trials, 2, 3) the closest hand surface point minus its
+    contact in the chair frame (m, +Y up, +Z the chair's front), "seated": (chairs*trials, 2)
+    1.0 if the character's pelvis had sat by that frame, else 0.0}}``, NaN where none asked).
 
     ``contact_samples`` > 0 also samples that many ContactNet contact sets per chair from each
     method's run and reports their contact APD (cm), within each chair and pooled.
@@ -228,6 +233,8 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
     dists: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
     joint_dists: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
     joints: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    offsets: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
+    seated: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
     onsets: dict[str, list[np.ndarray]] = {m: [] for m in synthesizers}
     extra: dict[str, dict[str, list[float]]] = {m: {"skate": [], "pen": [], "over": [],
                                                     "sat": []} for m in synthesizers}
@@ -244,11 +251,16 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
         for method, syn in synthesizers.items():
             r = syn.synthesize(scene, starts, sets[:, None], seconds)
             d, o, palms = _body_metrics(r, sets, sdf, coarse)
-            dists[method].append(closest_hand_distances(palms, sets))
+            off, frame = closest_hand_offsets(palms, sets)
+            dists[method].append(np.linalg.norm(off, axis=-1))
+            # row vectors times world_from_chair's rotation: into the chair frame
+            offsets[method].append(off @ scene.world_from_chair[:3, :3])
+            onset = _sit_onsets(r)[:, None]
+            seated[method].append(np.where(frame >= 0, (onset >= 0) & (frame >= onset), np.nan))
             joint_dists[method].append(closest_hand_distances(
                 r.joints[:, :, list(HAND_JOINTS)], sets))
             joints[method] += list(r.joints)
-            onsets[method].append(_sit_onsets(r))
+            onsets[method].append(onset[:, 0])
             extra[method]["skate"] += [foot_sliding(j, r.fps) for j in r.joints]
             extra[method]["pen"].append(d)
             extra[method]["over"].append(o)
@@ -277,7 +289,9 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
             row["contact APD cm"] = 100 * contact_apd(samples)
             row["contact APD pooled cm"] = 100 * contact_apd(samples.reshape(1, -1, 2, 3))
         rows[method] = row
-    return rows, raw, np.concatenate(labels)
+    misses = {m: {"offset": np.concatenate(offsets[m]), "seated": np.concatenate(seated[m])}
+              for m in synthesizers}
+    return rows, raw, np.concatenate(labels), misses
 
 
 def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
@@ -297,6 +311,36 @@ def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
             d = np.asarray(d, np.float64)[sel]
             row[f"{method} ACE cm"] = 100 * ace(d)
             row[f"{method} AP@{k} %"] = 100 * contact_precision(d, [threshold])[threshold]
+        out[label] = row
+    return out
+
+
+def miss_breakdown(misses: Mapping[str, Mapping[str, np.ndarray]], labels: np.ndarray
+                   ) -> dict[str, dict[str, float]]:
+    """Where the hands stop, per kind of asked contact: medians over the asked hands of the
+    closest hand surface point's height above its contact (cm, chair up; negative: below the
+    surface point) and its distance from it in the chair's horizontal plane (cm), and the
+    share of closest approaches made with the pelvis already seated (%).
+
+    ``misses``: :func:`evaluate`'s fourth output; ``labels`` its third. Returns ``{label: {"n":
+    count, "<method> up cm": ..., "<method> across cm": ..., "<method> seated %": ...}}``,
+    labels sorted. A palm ~1 cm above a seat's contact reads "up 1"; one that lands short of
+    an armrest's contact on its top reads as "across".
+    """
+    labels = np.asarray(labels).astype(str)
+    out: dict[str, dict[str, float]] = {}
+    for label in sorted(set(labels.ravel()) - {""}):
+        sel = labels == label
+        row: dict[str, float] = {"n": float(sel.sum())}
+        for method, m in misses.items():
+            off = np.asarray(m["offset"], np.float64)[sel]  # (n, 3)
+            found = np.isfinite(off).all(-1)
+            off, sat = off[found], np.asarray(m["seated"], np.float64)[sel][found]
+            empty = not len(off)
+            row[f"{method} up cm"] = np.nan if empty else 100 * float(np.median(off[:, 1]))
+            row[f"{method} across cm"] = (np.nan if empty else 100 * float(
+                np.median(np.hypot(off[:, 0], off[:, 2]))))
+            row[f"{method} seated %"] = np.nan if empty else 100 * float(np.mean(sat))
         out[label] = row
     return out
 

@@ -56,6 +56,7 @@ __all__ = [
     "ace",
     "apd",
     "closest_hand_distances",
+    "closest_hand_offsets",
     "contact_apd",
     "contact_intervals",
     "contact_precision",
@@ -84,9 +85,9 @@ def _shape_error(name: str, expected: str, array: np.ndarray) -> ValueError:
     return ValueError(f"{name} must have shape {expected}, got {tuple(np.shape(array))}")
 
 
-def closest_hand_distances(hands: np.ndarray, contacts: np.ndarray,
-                           valid: np.ndarray | None = None) -> np.ndarray:
-    """Closest approach of each hand to its asked contact point, per sequence.
+def closest_hand_offsets(hands: np.ndarray, contacts: np.ndarray,
+                         valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where each hand was at its closest approach to its asked contact point, per sequence.
 
     Args:
         hands: (N, T, 2, 3) world positions (m) of the left/right hand contact point for N
@@ -97,9 +98,9 @@ def closest_hand_distances(hands: np.ndarray, contacts: np.ndarray,
         valid: optional (N, T) bool, the frames to consider (default: all).
 
     Returns:
-        (N, 2) float64: min over valid frames of ``|hand - contact|`` (m); NaN where no contact
-        was asked, and also where a sequence has no valid frame (so :func:`ace` and
-        :func:`contact_precision` skip it; check ``np.isnan`` if that must not happen).
+        offsets (N, 2, 3) float64: ``hand - contact`` (world, m) at the frame of the smallest
+        ``|hand - contact|`` over valid frames, and that frame (N, 2) int; NaN offsets and
+        frame -1 where no contact was asked or a sequence has no valid frame.
     """
     h = np.asarray(hands, np.float64)
     c = np.asarray(contacts, np.float64)
@@ -115,11 +116,27 @@ def closest_hand_distances(hands: np.ndarray, contacts: np.ndarray,
         if mask.shape != (n, t):
             raise _shape_error("valid", f"(N, T) = ({n}, {t}) to match hands", mask)
         mask = mask.astype(bool)
-    dist = np.linalg.norm(h - c[:, None], axis=-1)  # (N, T, 2), NaN where no contact / bad hand
-    usable = mask[..., None] & np.isfinite(dist)  # (N, T, 2)
-    closest = np.where(usable, dist, np.inf).min(axis=1)  # (N, 2), inf: no usable frame
-    asked = np.isfinite(c).all(-1)
-    return np.where(asked & np.isfinite(closest), closest, np.nan)
+    vec = h - c[:, None]  # (N, T, 2, 3), NaN where no contact / bad hand
+    dist = np.linalg.norm(vec, axis=-1)  # (N, T, 2)
+    usable = mask[..., None] & np.isfinite(dist)
+    frame = np.where(usable, dist, np.inf).argmin(axis=1)  # (N, 2)
+    found = usable.any(axis=1) & np.isfinite(c).all(-1)
+    offsets = np.take_along_axis(vec, frame[:, None, :, None], axis=1)[:, 0]
+    return (np.where(found[..., None], offsets, np.nan),
+            np.where(found, frame, -1).astype(np.int64))
+
+
+def closest_hand_distances(hands: np.ndarray, contacts: np.ndarray,
+                           valid: np.ndarray | None = None) -> np.ndarray:
+    """Closest approach of each hand to its asked contact point, per sequence: the length of
+    :func:`closest_hand_offsets` (same arguments).
+
+    Returns:
+        (N, 2) float64: min over valid frames of ``|hand - contact|`` (m); NaN where no contact
+        was asked, and also where a sequence has no valid frame (so :func:`ace` and
+        :func:`contact_precision` skip it; check ``np.isnan`` if that must not happen).
+    """
+    return np.linalg.norm(closest_hand_offsets(hands, contacts, valid)[0], axis=-1)
 
 
 def ace(distances: np.ndarray) -> float:

@@ -17,6 +17,7 @@ from couch.synthesis.evaluation import (
     contact_candidates,
     evaluate,
     ground_truth_row,
+    miss_breakdown,
     segment_apd,
     trial_setup,
 )
@@ -105,14 +106,20 @@ def test_segment_apd_is_zero_for_identical_motions_and_grows_with_difference():
 
 def test_evaluate_and_ground_truth_rows(ci_run, motion_sim, armchair):
     synths = {m: Synthesizer(ci_run.run_dir, m) for m in ("couch", "baseline")}
-    rows, raw, labels = evaluate(synths, [armchair], trials=3, seconds=1.5, seed=1,
-                                 contact_samples=4, progress=False)
+    rows, raw, labels, misses = evaluate(synths, [armchair], trials=3, seconds=1.5, seed=1,
+                                         contact_samples=4, progress=False)
     assert labels.shape == (3, 2)
     assert set(labels.ravel()) - {""} <= {"armchair armrest", "armchair seat"}
     assert set(rows) == {"couch", "baseline"}
     for method, row in rows.items():
         assert row["ACE cm"] >= 0 and 0 <= row["AP@5 %"] <= 100
         assert raw[method].shape == (3, 2)
+        # where each hand stopped: its length is the hand's distance, nothing where none asked
+        off, sat = misses[method]["offset"], misses[method]["seated"]
+        assert off.shape == (3, 2, 3) and sat.shape == (3, 2)
+        np.testing.assert_allclose(np.linalg.norm(off, axis=-1), raw[method], equal_nan=True)
+        assert np.array_equal(np.isnan(sat), labels == "")
+        assert set(sat[labels != ""]) <= {0.0, 1.0}
         assert np.isfinite(row["skate mm/frame"]) and row["pen. depth cm"] >= 0
         # one chair: pooling over the chairs is that chair's contact APD (NaN for both when
         # the ci-sized ContactNet's samples leave fewer than two complete two-hand sets)
@@ -141,6 +148,23 @@ def test_contact_breakdown_groups_the_asked_contacts():
     seat = out["sofa seat"]
     assert seat["n"] == 3 and seat["a ACE cm"] == pytest.approx(7 / 3)
     assert seat["a AP@5 %"] == pytest.approx(100.0) and seat["b AP@5 %"] == pytest.approx(100 / 3)
+
+
+def test_miss_breakdown_medians_per_asked_contact():
+    up = np.array([0.0, 1.0, 0.0])
+    misses = {"a": {"offset": np.array([[0.01 * up, [np.nan] * 3],
+                                        [[0.03, 0.0, 0.04], 0.02 * up],
+                                        [[np.nan] * 3, [0.0, -0.01, 0.0]]]),
+                    "seated": np.array([[1.0, np.nan], [0.0, 1.0], [np.nan, 0.0]])}}
+    labels = np.array([["sofa seat", ""], ["sofa armrest", "sofa seat"], ["", "sofa seat"]])
+    out = miss_breakdown(misses, labels)
+    assert list(out) == ["sofa armrest", "sofa seat"]
+    # the armrest hand stopped level with its contact, 5 cm off across
+    assert out["sofa armrest"] == pytest.approx({"n": 1, "a up cm": 0.0, "a across cm": 5.0,
+                                                 "a seated %": 0.0})
+    # seats: 1 cm above, 2 cm above and 1 cm below -> median 1 cm up, nothing across
+    assert out["sofa seat"] == pytest.approx({"n": 3, "a up cm": 1.0, "a across cm": 0.0,
+                                              "a seated %": 200 / 3})
 
 
 def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
@@ -172,6 +196,13 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
         assert 100 * np.nanmean(d) == pytest.approx(doc["rows"][method]["ACE cm"])
         assert np.array_equal(np.isnan(d), labels == "")  # a distance where a hand was asked
     assert set(chair) == {"armchair_00"}
+    # and where each hand stopped, whose length is that distance
+    assert "| contact | n | couch up cm | couch across cm | couch seated % |" in table
+    assert set(doc["where"]) == set(doc["breakdown"])
+    with np.load(tmp_path / "trials.npz", allow_pickle=False) as z:
+        for method, d in dist.items():
+            np.testing.assert_allclose(np.linalg.norm(z[f"offset/{method}"], axis=-1), d,
+                                       equal_nan=True)
     np.savez(tmp_path / "other.npz", x=np.zeros(2))
     with pytest.raises(ValueError, match=r"other\.npz: not a couch-eval trials\.npz"):
         load_trials(tmp_path / "other.npz")

@@ -17,6 +17,7 @@ from couch.synthesis.metrics import (
     ace,
     apd,
     closest_hand_distances,
+    closest_hand_offsets,
     contact_apd,
     contact_intervals,
     contact_precision,
@@ -51,6 +52,23 @@ def test_hand_through_contact_gives_zero():
     np.testing.assert_allclose(d, 0.0, atol=1e-12)
     assert ace(d) == pytest.approx(0.0, abs=1e-12)
     assert contact_precision(d) == {0.03: 1.0, 0.05: 1.0, 0.07: 1.0, 0.09: 1.0}
+
+
+def test_closest_offsets_say_where_and_when():
+    t = 21
+    contacts = np.array([[[0.0, 0.5, 0.0], [0.3, 0.6, 0.1]], [[np.nan] * 3, [0.0, 0.0, 0.0]]])
+    hands = np.zeros((2, t, 2, 3))
+    hands[0, :, 0] = _line([-1, 0.52, 0], [1, 0.52, 0], t)  # 2 cm above it at frame 10
+    hands[0, :, 1] = _line([0.3, 0.6, 0.5], [0.3, 0.6, 0.2], t)  # coming, 10 cm short at the end
+    hands[1, :, 1] = 1.0
+    valid = np.ones((2, t), bool)
+    valid[1] = False  # sequence 1 is all padding
+    off, frame = closest_hand_offsets(hands, contacts, valid)
+    np.testing.assert_allclose(off[0], [[0.0, 0.02, 0.0], [0.0, 0.0, 0.1]], atol=1e-12)
+    assert frame.tolist() == [[10, t - 1], [-1, -1]]
+    assert np.isnan(off[1]).all()
+    np.testing.assert_allclose(np.linalg.norm(off, axis=-1),
+                               closest_hand_distances(hands, contacts, valid), equal_nan=True)
 
 
 def test_constant_offset_and_nan_contact():

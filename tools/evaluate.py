@@ -40,6 +40,7 @@ from couch.synthesis.evaluation import (
     contact_breakdown,
     evaluate,
     ground_truth_row,
+    miss_breakdown,
 )
 from couch.tools.sim.chairs import load_mesh, make_chair, random_chair_spec
 from couch.tools.synthesize import add_runtime_arguments
@@ -63,11 +64,17 @@ def simulated_chairs(count: int, seed: int) -> list[EvalChair]:
 
 
 def save_trials(path: Path, raw: dict[str, np.ndarray], labels: np.ndarray,
-                chairs: Sequence[str], trials: int) -> None:
+                chairs: Sequence[str], trials: int,
+                misses: dict[str, dict[str, np.ndarray]] | None = None) -> None:
     """Write ``trials.npz``: ``distance/<method>`` (N, 2) closest hand-surface distance to
     each asked contact (m; NaN: none asked), ``labels`` (N, 2) what was asked (``"<chair
-    kind> <part>"``), ``chair`` (N,) the chair's name; N = chairs x trials, chair-major."""
+    kind> <part>"``), ``chair`` (N,) the chair's name; N = chairs x trials, chair-major; with
+    ``misses`` (:func:`~couch.synthesis.evaluation.evaluate`'s fourth output) also
+    ``offset/<method>`` (N, 2, 3) where the closest hand point was relative to its contact
+    (chair frame, m) and ``seated/<method>`` (N, 2) whether the pelvis had sat by then."""
     arrays = {f"distance/{m}": np.asarray(d, np.float64) for m, d in raw.items()}
+    for m, miss in (misses or {}).items():
+        arrays.update({f"{k}/{m}": np.asarray(v, np.float64) for k, v in miss.items()})
     with atomic_path(path) as tmp:
         np.savez(tmp, labels=np.asarray(labels).astype(str),
                  chair=np.repeat(np.asarray(chairs, dtype=str), trials), **arrays)
@@ -142,10 +149,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             chairs = [EvalChair(p.stem, *load_mesh(p)) for p in paths]
         else:
             chairs = simulated_chairs(args.chairs, args.seed)
-        rows, raw, labels = evaluate(synths, chairs, trials=args.trials, seconds=args.seconds,
-                                     seed=args.seed, contact_samples=args.contact_samples,
-                                     progress=not args.quiet)
+        rows, raw, labels, misses = evaluate(
+            synths, chairs, trials=args.trials, seconds=args.seconds, seed=args.seed,
+            contact_samples=args.contact_samples, progress=not args.quiet)
         breakdown = contact_breakdown(raw, labels)
+        where = miss_breakdown(misses, labels)
         intervals = contact_intervals(raw, "baseline" if "baseline" in raw else None,
                                       seed=args.seed)
         if args.data:
@@ -156,7 +164,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     table = (format_table(rows) + "\n\n" + format_intervals(intervals, len(chairs) * args.trials)
              + "\n\nPer kind of asked contact (chair kind, part; n hands):\n\n"
-             + format_table(breakdown, first="contact"))
+             + format_table(breakdown, first="contact")
+             + "\n\nWhere the hands stop (medians per kind of asked contact: the closest hand "
+               "point's height above its contact along the chair's up, its distance from it "
+               "across, and the share of closest approaches made already seated):\n\n"
+             + format_table(where, first="contact"))
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in vars(args).items() if k not in ("output", "quiet")}
@@ -168,9 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         tmp.write_text(header + table + "\n")
     with atomic_path(out / "eval.json") as tmp:
         tmp.write_text(json.dumps({"settings": settings, "rows": rows,
-                                   "intervals": intervals, "breakdown": breakdown}, indent=2,
-                                  default=float) + "\n")
-    save_trials(out / "trials.npz", raw, labels, [c.name for c in chairs], args.trials)
+                                   "intervals": intervals, "breakdown": breakdown,
+                                   "where": where}, indent=2, default=float) + "\n")
+    save_trials(out / "trials.npz", raw, labels, [c.name for c in chairs], args.trials,
+                misses)
     print(header + table)
     return 0
 

@@ -155,8 +155,8 @@ def select_networks(candidates: Sequence[str | Path], out: str | Path, *, chairs
                 (pair / net).symlink_to((runs[i] / net).resolve(), target_is_directory=True)
             synths[name] = Synthesizer(pair, "couch")
         _check_features(synths)
-        rows, _, _ = evaluate(synths, simulated_chairs(chairs, seed), trials=trials,
-                              seconds=seconds, seed=seed, progress=progress)
+        rows, *_ = evaluate(synths, simulated_chairs(chairs, seed), trials=trials,
+                            seconds=seconds, seed=seed, progress=progress)
 
     def best(prefix: str) -> str | None:
         names = [m for m in rows if m.startswith(prefix)]
