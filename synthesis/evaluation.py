@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -294,6 +294,23 @@ def evaluate(synthesizers: Mapping[str, Synthesizer], chairs: Sequence[EvalChair
     return rows, raw, np.concatenate(labels), misses
 
 
+def _by_label(labels: np.ndarray, methods: Iterable[str],
+              cells: Callable[[str, np.ndarray], dict[str, float]]
+              ) -> dict[str, dict[str, float]]:
+    """One row per kind of asked contact (``labels`` (N, 2), sorted, ``""`` skipped): ``{"n":
+    count}`` then each method's ``cells(method, sel)`` for the hands of that kind (``sel``
+    (N, 2) bool)."""
+    labels = np.asarray(labels).astype(str)
+    out: dict[str, dict[str, float]] = {}
+    for label in sorted(set(labels.ravel()) - {""}):
+        sel = labels == label
+        row: dict[str, float] = {"n": float(sel.sum())}
+        for method in methods:
+            row.update(cells(method, sel))
+        out[label] = row
+    return out
+
+
 def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
                       threshold: float = 0.05) -> dict[str, dict[str, float]]:
     """ACE (cm) and AP@``threshold`` (%) per kind of asked contact: where a method misses.
@@ -301,18 +318,14 @@ def contact_breakdown(distances: Mapping[str, np.ndarray], labels: np.ndarray,
     ``distances``: method → (N, 2) closest hand distances (m, NaN: none asked), ``labels``
     (N, 2) what each contact was (:func:`evaluate`'s third output). Returns ``{label: {"n":
     count, "<method> ACE cm": ..., "<method> AP@5 %": ...}}``, labels sorted."""
-    labels = np.asarray(labels).astype(str)
     k = round(threshold * 100)
-    out: dict[str, dict[str, float]] = {}
-    for label in sorted(set(labels.ravel()) - {""}):
-        sel = labels == label
-        row: dict[str, float] = {"n": float(sel.sum())}
-        for method, d in distances.items():
-            d = np.asarray(d, np.float64)[sel]
-            row[f"{method} ACE cm"] = 100 * ace(d)
-            row[f"{method} AP@{k} %"] = 100 * contact_precision(d, [threshold])[threshold]
-        out[label] = row
-    return out
+
+    def cells(method: str, sel: np.ndarray) -> dict[str, float]:
+        d = np.asarray(distances[method], np.float64)[sel]
+        return {f"{method} ACE cm": 100 * ace(d),
+                f"{method} AP@{k} %": 100 * contact_precision(d, [threshold])[threshold]}
+
+    return _by_label(labels, distances, cells)
 
 
 def miss_breakdown(misses: Mapping[str, Mapping[str, np.ndarray]], labels: np.ndarray
@@ -327,22 +340,17 @@ def miss_breakdown(misses: Mapping[str, Mapping[str, np.ndarray]], labels: np.nd
     labels sorted. A palm ~1 cm above a seat's contact reads "up 1"; one that lands short of
     an armrest's contact on its top reads as "across".
     """
-    labels = np.asarray(labels).astype(str)
-    out: dict[str, dict[str, float]] = {}
-    for label in sorted(set(labels.ravel()) - {""}):
-        sel = labels == label
-        row: dict[str, float] = {"n": float(sel.sum())}
-        for method, m in misses.items():
-            off = np.asarray(m["offset"], np.float64)[sel]  # (n, 3)
-            found = np.isfinite(off).all(-1)
-            off, sat = off[found], np.asarray(m["seated"], np.float64)[sel][found]
-            empty = not len(off)
-            row[f"{method} up cm"] = np.nan if empty else 100 * float(np.median(off[:, 1]))
-            row[f"{method} across cm"] = (np.nan if empty else 100 * float(
-                np.median(np.hypot(off[:, 0], off[:, 2]))))
-            row[f"{method} seated %"] = np.nan if empty else 100 * float(np.mean(sat))
-        out[label] = row
-    return out
+    def cells(method: str, sel: np.ndarray) -> dict[str, float]:
+        names = [f"{method} up cm", f"{method} across cm", f"{method} seated %"]
+        off = np.asarray(misses[method]["offset"], np.float64)[sel]  # (n, 3)
+        found = np.isfinite(off).all(-1)
+        if not found.any():
+            return dict.fromkeys(names, np.nan)
+        off, sat = off[found], np.asarray(misses[method]["seated"], np.float64)[sel][found]
+        values = (np.median(off[:, 1]), np.median(np.hypot(off[:, 0], off[:, 2])), np.mean(sat))
+        return {name: 100 * float(v) for name, v in zip(names, values, strict=True)}
+
+    return _by_label(labels, misses, cells)
 
 
 def ground_truth_row(sessions: Sequence[ProcessedSession], fps: float = 30.0
