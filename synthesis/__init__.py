@@ -15,7 +15,8 @@ Public API, by module:
   resume, ``log.csv`` + ``curves.png``), :func:`load_trained`.
 - ``controller.py``: :class:`Synthesizer` (the runtime controller: PoseNet alone on the
   approach, ControlNet switched on near each contact, series of contacts, batched characters;
-  ``method="baseline"`` runs NSM+Control in the same loop), :class:`Scene`,
+  ``method="baseline"`` runs NSM+Control in the same loop, ``method="nsm"`` the plain NSM),
+  :class:`Scene`,
   :class:`SynthesisResult`, :func:`yaw_transform`.
 - ``plans.py``: :func:`replay_plans` (a trained ControlNet run over a feature cache as the
   runtime runs it: PoseNet's control input for ``TrainConfig.control_source="controlnet"``),

@@ -7,7 +7,9 @@ contact (the training features apply the same rule), and a "no contact" hand (Na
 its control zeroed. ControlNet runs closed loop: the first active frame of a contact reads the
 straight line from the hand to the contact, later frames read its own previous prediction (the
 scheduled-sampling end state it was trained towards). The NSM+Control baseline runs in the same
-loop with the raw contacts (``contact_inputs``) in place of ControlNet's C+.
+loop with the raw contacts (``contact_inputs``) in place of ControlNet's C+, and the plain NSM
+(the paper's Table 2) with no hand input at all: the series still advances and is scored, but
+nothing tells the network where the hands should go.
 
 Everything is vectorised over the batch of characters (B); the loop runs over frames, as any
 autoregressive controller must. Frames: world metres, +Y up, floor y = 0; the chair mesh is
@@ -90,8 +92,10 @@ SEAT_BACK_ROOM = 0.20
 #: armrest (:meth:`Scene.goals`).
 SEAT_CONTACT_BAND = 0.05
 
-#: Synthesis methods: COUCH (ControlNet + PoseNet) and the NSM+Control baseline.
-METHODS: tuple[str, ...] = ("couch", "baseline")
+#: Synthesis methods: COUCH (ControlNet + PoseNet), the NSM+Control baseline and the plain NSM.
+METHODS: tuple[str, ...] = ("couch", "baseline", "nsm")
+#: The trained network each method's pose comes from (``couch-train --net``).
+POSE_NET: dict[str, str] = {"couch": "pose", "baseline": "baseline", "nsm": "nsm"}
 
 #: PoseNet's encoder of the chair's voxels (I), whose first layer the loop folds per scene.
 INTERACTION_ENCODER = "I"
@@ -321,9 +325,11 @@ class Synthesizer:
 
     Args:
         run_dir: the run folder. ``method`` "couch" needs its ``pose`` and ``control`` nets,
-            "baseline" its ``baseline`` net. ``which``: their checkpoints, "best", "last" or an
-            epoch number (kept by ``couch-train --keep-epochs``), or per network
-            (``{"pose": 14, "control": "best"}``; see :func:`couch.synthesis.train.parse_which`).
+            "baseline" its ``baseline`` net, "nsm" its ``nsm`` net (the plain NSM, whose sit
+            goal is the seat's, not moved towards the contacts). ``which``: their checkpoints,
+            "best", "last" or an epoch number (kept by ``couch-train --keep-epochs``), or per
+            network (``{"pose": 14, "control": "best"}``; see
+            :func:`couch.synthesis.train.parse_which`).
         hold: seconds a contact set is held (all its hands within ``reach`` m) before the next
             set of a series starts; ``timeout``: seconds after which it starts anyway.
         blend_radius: bidirectional control (NSM, which COUCH's goal-relative root output is
@@ -376,7 +382,7 @@ class Synthesizer:
             raise ValueError(f"precision {precision!r} runs fbgemm's CPU kernels; on "
                              f"{self.device} use fp32")
         self.run_dir = Path(run_dir)
-        net = "pose" if method == "couch" else "baseline"
+        net = POSE_NET[method]
         self.pose_net, self.pose_stats, meta = load_trained(run_dir, net, which_for(which, net),
                                                             device)
         self.precision = precision
@@ -618,6 +624,8 @@ class Synthesizer:
             groups["control_root_positions"] = control_in_root(pos, to_root(safe, s.root), mask)
             groups["control_phases"] = ph
             hand_phase = ph[..., 0]
+        elif self.method == "nsm":
+            hand_phase = np.zeros(mask.shape)  # no hand input: its history stays empty
         else:
             rel = np.where(mask[..., None], to_root(safe, s.root), 0.0)
             groups["contact_inputs"] = np.concatenate([rel.reshape(batch, 6), mask], -1)
@@ -705,7 +713,9 @@ class Synthesizer:
         frames = round(seconds * self.cfg.fps)
         if frames < 1:
             raise ValueError(f"seconds must give at least one frame, got {seconds}")
-        goal = scene.goals(series)
+        # the plain NSM knows no contact, so it sits where the seat is, not beside one
+        goal = scene.goals(np.full_like(series[:, :1], np.nan) if self.method == "nsm"
+                           else series)
         state = self._initial_state(goal, starts, len(starts))
         steps = []
         for _ in tqdm(range(frames), desc="synthesis", unit="frame", disable=not progress):

@@ -947,6 +947,11 @@ def layout(cfg: FeatureConfig | None = None) -> dict[str, dict[str, dict[str, in
     baseline_inputs.update({k: v for k, v in pose_inputs.items()
                             if k not in ("control_root_positions", "control_phases")})
     out["baseline"] = {"inputs": baseline_inputs, "targets": dict(out["posenet"]["targets"])}
+    # NSM (paper Table 2's first row): the PoseNet without any hand control input, gated on
+    # the global phase alone; where the hands go is the motion's own doing.
+    out["nsm"] = {"inputs": {k: v for k, v in pose_inputs.items()
+                             if k not in ("control_root_positions", "control_phases")},
+                  "targets": dict(out["posenet"]["targets"])}
     return out
 
 

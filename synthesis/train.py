@@ -79,9 +79,11 @@ from couch.synthesis.nets import (
 from couch.synthesis.plans import REPLAN_RADIUS, replay_plans
 
 __all__ = [
+    "ALL_NETS",
     "ENCODER_GROUPS",
     "GATING_GROUPS",
     "NETS",
+    "POSE_NETS",
     "PRESETS",
     "NetResult",
     "TrainConfig",
@@ -93,7 +95,12 @@ __all__ = [
     "train",
 ]
 
-NETS: tuple[str, ...] = ("control", "pose", "contact", "baseline")
+NETS: tuple[str, ...] = ("control", "pose", "contact", "baseline", "nsm")
+#: What ``net="all"`` trains: COUCH's three networks and the NSM+Control baseline, not the
+#: plain NSM (paper Table 2's first row; ``net="nsm"`` trains it on request).
+ALL_NETS: tuple[str, ...] = ("control", "pose", "contact", "baseline")
+#: The PoseNet variants (one architecture, one task): COUCH's, NSM+Control and NSM.
+POSE_NETS: tuple[str, ...] = ("pose", "baseline", "nsm")
 PRESETS: tuple[str, ...] = ("paper", "cpu", "ci")
 #: Epoch set as ``teacher_forcing_until`` for a ControlNet trained without scheduled sampling
 #: (teacher probability 1 in every epoch of any run); finite, so the config stays plain JSON.
@@ -118,6 +125,8 @@ ENCODER_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
 }
 # The NSM+Control baseline reads the raw hand contacts where PoseNet reads ControlNet's C+.
 ENCODER_GROUPS["baseline"] = {**ENCODER_GROUPS["pose"], "C": ("contact_inputs",)}
+# NSM reads no control input at all: the baseline's adaptation undone.
+ENCODER_GROUPS["nsm"] = {k: v for k, v in ENCODER_GROUPS["pose"].items() if k != "C"}
 #: Gating features per PoseNet variant. NSM's gating network reads the phase and the goal
 #: action, not where the goal is; the baseline has no local phases (it never sees ControlNet's
 #: output), so it gates on the global phase and which hands have a contact (the action), and
@@ -126,6 +135,7 @@ ENCODER_GROUPS["baseline"] = {**ENCODER_GROUPS["pose"], "C": ("contact_inputs",)
 GATING_GROUPS: dict[str, tuple[str, ...]] = {
     "pose": ("global_phase", "control_phases"),
     "baseline": ("global_phase", "hand_mask"),
+    "nsm": ("global_phase",),
 }
 #: PoseNet inputs the runtime builds from its own previous predictions (see ``input_noise``).
 FED_BACK_GROUPS: tuple[str, ...] = ("joint_positions", "joint_rotations", "joint_velocities",
@@ -139,7 +149,7 @@ POSE_FEEDBACK: dict[str, str] = {"next_joint_positions": "joint_positions",
 #: The other outputs :func:`pose_feedback` reads (T, the global phase and when it is seated).
 _FEEDBACK_READS = ("future_trajectory", "global_phase_update", "next_contacts")
 _LAYOUT_KEY = {"control": "controlnet", "pose": "posenet", "baseline": "baseline",
-               "contact": "contactnet"}
+               "nsm": "nsm", "contact": "contactnet"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -165,8 +175,8 @@ class TrainConfig:
             to the normalised inputs that the runtime feeds back from its own predictions (J,
             T and the global phase), so that the network learns to pull a drifting state back
             instead of compounding its one-step errors (0: off, the paper's recipe).
-        rollout: PoseNet and baseline: frames per closed-loop training window (>= 2).
-        rollout_epochs: PoseNet and baseline: the last this many epochs train on closed-loop
+        rollout: PoseNet, baseline and NSM: frames per closed-loop training window (>= 2).
+        rollout_epochs: PoseNet, baseline and NSM: the last this many epochs train on closed-loop
             windows of ``rollout`` frames instead of one-step pairs (0: off, the paper's
             recipe). In such a window J (joint positions, rotations, velocities) is, from the
             second frame on, the network's own previous prediction, as at runtime; the rest is
@@ -175,7 +185,7 @@ class TrainConfig:
             drifted J it has to bring the hands back to where C+, the trajectory and the chair
             say they should be. Validation then runs closed loop in every epoch, and
             ``best.pt`` is the closed-loop epoch with the lowest validation loss.
-        hand_weight: PoseNet and baseline: weight of the wrists' next positions and rotations
+        hand_weight: PoseNet, baseline and NSM: weight of the wrists' next positions and rotations
             (which place the hands) in the loss, every other output weighing 1 (1: a plain
             MSE, the paper's recipe). Validation uses the same weights, so ``best.pt`` is
             picked by the loss that was trained.
@@ -243,8 +253,8 @@ def _tuples(value: Any) -> Any:
 
 def network_config(cfg: TrainConfig) -> ControlNetConfig | PoseNetConfig | ContactNetConfig:
     """The network config object of ``cfg.network``."""
-    cls = {"control": ControlNetConfig, "pose": PoseNetConfig, "baseline": PoseNetConfig,
-           "contact": ContactNetConfig}[cfg.net]
+    cls = {"control": ControlNetConfig, "contact": ContactNetConfig,
+           **dict.fromkeys(POSE_NETS, PoseNetConfig)}[cfg.net]
     return cls(**_tuples(cfg.network))
 
 
@@ -286,7 +296,7 @@ def preset_config(net: str, preset: str = "paper", epochs: int | None = None) ->
         kw: dict[str, Any] = dict(lr=3e-3 if ci else 1e-3, window=20 if ci else 60,
                                   epochs=12 if ci else 15 if cpu else 150,
                                   grad_clip=1.0 if ci or cpu else 0.0)
-    elif net in ("pose", "baseline"):
+    elif net in POSE_NETS:
         if ci:
             ncfg = PoseNetConfig(encoders={"C": (32,), "JT": (64,), "G": (32,), "I": (32,),
                                            "E": (32,)},
@@ -650,15 +660,15 @@ def _contact_task(cache: FeatureCache, train: np.ndarray, val: np.ndarray, cfg: 
     return _Task(model, train_ds, val_ds, stats, loss, meta)
 
 
-_TASKS = {"control": _control_task, "pose": _pose_task, "baseline": _pose_task,
-          "contact": _contact_task}
+_TASKS = {"control": _control_task, "contact": _contact_task,
+          **dict.fromkeys(POSE_NETS, _pose_task)}
 
 
 def _build_model(net: str, cfg: TrainConfig, args: Mapping[str, Any]) -> nn.Module:
     ncfg = network_config(cfg)
     if net == "control":
         return ControlNet(config=ncfg, **args)  # type: ignore[arg-type]
-    if net in ("pose", "baseline"):
+    if net in POSE_NETS:
         return PoseNet(args["inputs"], args["gating_inputs"], args["out_dim"],
                        ncfg)  # type: ignore[arg-type]
     return ContactNet(args["cond_dim"], args["contact_dim"], ncfg)  # type: ignore[arg-type]
@@ -971,13 +981,14 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
           configs: Mapping[str, TrainConfig] | None = None,
           features: FeatureConfig | None = None, keep_epochs: bool = False,
           stream_rows: int | None = None) -> TrainResult:
-    """Train ``net`` (control | pose | contact | baseline | all) on the sequences under
+    """Train ``net`` (control | pose | contact | baseline | nsm | all) on the sequences under
     ``data_paths``, writing everything into ``run_dir`` (see the module docstring).
 
     Args:
         data_paths: files/folders for :func:`couch.synthesis.data.find_sequences`.
         run_dir: output folder (created).
-        net: which network, or "all" (control, pose, contact, baseline in that order).
+        net: which network, or "all" (:data:`ALL_NETS`: control, pose, contact, baseline in
+            that order; "nsm", the plain NSM of the paper's Table 2, only when named).
         preset: "paper" or "ci" (:func:`preset_config`).
         epochs: override the preset's epochs.
         device: torch device string ("cpu", "cuda", "cuda:1").
@@ -1000,7 +1011,7 @@ def train(data_paths: Sequence[str | os.PathLike], run_dir: str | os.PathLike, *
     Raises:
         FileNotFoundError / ValueError / couch.schema.SchemaError naming the offending file.
     """
-    nets = list(NETS) if net == "all" else [net]
+    nets = list(ALL_NETS) if net == "all" else [net]
     if any(n not in NETS for n in nets):
         raise ValueError(f"unknown net {net!r}; choose from {', '.join(NETS)} or all")
     cfgs = {n: (configs or {}).get(n) or preset_config(n, preset, epochs) for n in nets}
@@ -1169,20 +1180,23 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="couch-train",
         description="Train COUCH's ControlNet, PoseNet, ContactNet and the NSM+Control baseline "
-                    "on processed sequences (files, augmented.h5 datasets or folders).")
+                    "(and, asked by --net nsm, the plain NSM) on processed sequences (files, "
+                    "augmented.h5 datasets or folders).")
     p.add_argument("data", nargs="+", help="processed .h5 files, augmented.h5 files or folders")
     p.add_argument("-o", "--output", required=True, help="run folder (checkpoints, logs, cache)")
-    p.add_argument("--net", default="all", choices=[*NETS, "all"])
+    p.add_argument("--net", default="all", choices=[*NETS, "all"],
+                   help="all: control, pose, contact and baseline; nsm (the plain NSM of the "
+                        "paper's Table 2: the pose network without the contacts) only by name")
     p.add_argument("--preset", default="paper", choices=list(PRESETS))
     p.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
     p.add_argument("--rollout-epochs", type=int, default=None,
-                   help="PoseNet and baseline: train the last N epochs closed loop (override "
+                   help="PoseNet, baseline and NSM: train the last N epochs closed loop (override "
                         "the preset's; 0: one-step pairs only)")
     p.add_argument("--rollout", type=int, default=None,
-                   help="PoseNet and baseline: frames per closed-loop window (override the "
+                   help="PoseNet, baseline and NSM: frames per closed-loop window (override the "
                         "preset's)")
     p.add_argument("--hand-weight", type=float, default=None, metavar="W",
-                   help="PoseNet and baseline: loss weight of the wrists' next positions and "
+                   help="PoseNet, baseline and NSM: loss weight of the wrists' next positions and "
                         "rotations, every other output 1 (default 1: a plain MSE)")
     p.add_argument("--control-source", default=None, choices=list(CONTROL_SOURCES),
                    help="PoseNet: its control input from the data's future hand paths (data, "
@@ -1265,7 +1279,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     pose_only = {} if args.control_source is None else {"control_source": args.control_source}
     configs = ({n: dataclasses.replace(preset_config(n, args.preset, args.epochs), **overrides,
                                        **(pose_only if n == "pose" else {}))
-                for n in ("pose", "baseline")} if overrides or pose_only else None)
+                for n in POSE_NETS} if overrides or pose_only else None)
     try:
         result = train(args.data, args.output, net=args.net, preset=args.preset,
                        epochs=args.epochs, device=args.device, seed=args.seed,

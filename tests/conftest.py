@@ -129,3 +129,15 @@ def ci_run(motion_sim, tmp_path_factory):
     return train([motion_sim], run, net="all", preset="ci", progress=False, seed=0,
                  keep_epochs=True)
 
+
+
+@pytest.fixture(scope="session")
+def ci_nsm_run(ci_run, motion_sim, tmp_path_factory):
+    """A run folder holding :func:`ci_run`'s networks and feature cache (links) and the plain
+    NSM trained beside them (``net="nsm"``, ``ci`` preset; a TrainResult)."""
+    from couch.synthesis.train import train
+
+    run = tmp_path_factory.mktemp("nsm_run")
+    for name in ("features.h5", "pose", "control", "baseline", "contact"):
+        os.symlink(ci_run.run_dir / name, run / name)
+    return train([motion_sim], run, net="nsm", preset="ci", progress=False, seed=0)

@@ -211,6 +211,25 @@ def test_couch_eval_writes_table(ci_run, tmp_path, capsys):
         load_trials(tmp_path / "cut.npz")
 
 
+def test_couch_eval_compares_with_the_plain_nsm(ci_nsm_run, tmp_path, capsys):
+    """Paper Table 2: with nsm among the methods, every other method's ACE reduction against
+    it is reported beside the one against the baseline, paired on the same trials."""
+    code = main([str(ci_nsm_run.run_dir), "-o", str(tmp_path), "--chairs", "1", "--trials",
+                 "2", "--seconds", "1", "--contact-samples", "0", "--methods",
+                 "couch,baseline,nsm", "-q"])
+    assert code == 0, capsys.readouterr().err
+    doc = json.loads((tmp_path / "eval.json").read_text())
+    assert set(doc["rows"]) == {"couch", "baseline", "nsm"}
+    iv = doc["intervals"]
+    for m in ("couch", "baseline"):
+        value, low, high = iv[m]["ACE reduction vs NSM %"]
+        assert value == pytest.approx(100 * (1 - doc["rows"][m]["ACE cm"]
+                                             / doc["rows"]["nsm"]["ACE cm"]))
+        assert low <= value <= high
+    assert "ACE reduction vs NSM %" not in iv["nsm"] and "ACE reduction %" in iv["nsm"]
+    assert "ACE reduction vs NSM " in (tmp_path / "eval.md").read_text()
+
+
 def test_couch_eval_bad_input(ci_run, tmp_path, capsys):
     assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--trials", "0"]) == 2
     assert main([str(ci_run.run_dir), "-o", str(tmp_path), "--chair-dir", str(tmp_path)]) == 2

@@ -41,6 +41,7 @@ from couch.synthesis.data import (
 from couch.synthesis.features import LAYOUT, SIT, FeatureStats
 from couch.synthesis.train import (
     _TASKS,
+    ALL_NETS,
     NETS,
     TEACHER_ALWAYS,
     WEIGHTED_JOINTS,
@@ -75,7 +76,8 @@ def _log(path):
 
 
 def test_all_nets_learn_and_write_their_files(trained):
-    for net in NETS:
+    assert list(trained.nets) == list(ALL_NETS) and "nsm" in NETS  # "all": not the plain NSM
+    for net in ALL_NETS:
         r = trained.nets[net]
         for name in FILES:
             assert (r.dir / name).is_file(), f"{net}: {name} missing"
@@ -649,6 +651,40 @@ def test_baseline_gates_on_phase_and_which_hands_not_where(trained):
         flipped = dict(x)
         flipped["hand_mask"] = -x["hand_mask"] + 1.0
         assert not torch.allclose(model.gate(pose_inputs(flipped, "baseline")), gate)
+
+
+def test_nsm_reads_no_contacts_and_its_hands_go_where_the_motion_takes_them(ci_nsm_run):
+    """The plain NSM (paper Table 2): the pose network with no hand input, gated on the phase
+    alone. It learns like the others, and two characters asked for different contacts move
+    alike under it, unlike under the baseline, which reads them."""
+    from couch.synthesis import Scene, Synthesizer
+    from couch.tools.sim.chairs import make_chair, random_chair_spec
+
+    r = ci_nsm_run.nets["nsm"]
+    assert list(ci_nsm_run.nets) == ["nsm"] and ci_nsm_run.cache_hit
+    for name in FILES:
+        assert (r.dir / name).is_file(), name
+    assert r.train_loss[-1] < 0.8 * r.train_loss[0] and r.val_loss[-1] < r.val_loss[0]
+    model, _, meta = load_trained(ci_nsm_run.run_dir, "nsm")
+    assert set(model.encoders) == {"JT", "G", "I", "E"}
+    assert model.gating_inputs == {"global_phase": 1}
+    assert not {"contact_inputs", "hand_mask", "control_root_positions"} & set(meta["groups_in"])
+    assert set(meta["groups_out"]) == set(LAYOUT["posenet"]["targets"])
+
+    torch.set_num_threads(1)
+    c = make_chair(random_chair_spec(np.random.default_rng(4), "armchair"))
+    left, right = np.asarray(c.landmarks.left_armrest), np.asarray(c.landmarks.right_armrest)
+    starts = np.array([[0.2, 0.9, np.pi]])  # within reach: control on from the start
+    asked = [np.array([[left, [np.nan] * 3]]), np.array([[[np.nan] * 3, right]])]
+    joints = {}
+    for method in ("nsm", "baseline"):
+        syn = Synthesizer(ci_nsm_run.run_dir, method)
+        scene = Scene.from_mesh(c.vertices, c.faces, syn.cfg)
+        out = [syn.synthesize(scene, starts, s, seconds=1.0) for s in asked]
+        assert out[0].control_on[0, :, 0].any() and out[1].control_on[0, :, 1].any()
+        joints[method] = [o.joints for o in out]
+    np.testing.assert_array_equal(*joints["nsm"])
+    assert np.abs(joints["baseline"][0] - joints["baseline"][1]).max() > 1e-4
 
 
 def test_split_holds_out_chairs(trained):

@@ -8,7 +8,10 @@ by the simulator (armchair, straight, sofa in turn; never seen in training), or 
 sequences). Writes ``OUT/eval.md`` (the table, bootstrap intervals, and ACE / AP@5 per kind of
 asked contact: chair kind and part), ``OUT/eval.json`` (rows, intervals, that breakdown and
 the settings) and ``OUT/trials.npz`` (every trial's closest hand distances per method, for
-paired comparisons across runs: see :func:`load_trials`).
+paired comparisons across runs: see :func:`load_trials`). ``--methods ...,nsm`` also drives the
+plain NSM of the run (``couch-train --net nsm``: the pose network with no contact input, the
+paper's Table 2's first row), and every other method's ACE reduction against it is given beside
+the one against the baseline.
 """
 
 from __future__ import annotations
@@ -107,7 +110,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--baseline-run", help="run with the baseline net (default: RUN)")
     p.add_argument("--methods", default="couch,couch+ik,baseline",
-                   help="comma-separated: couch, baseline, couch+ik (couch with hand IK)")
+                   help="comma-separated: couch, baseline, couch+ik (couch with hand IK), nsm "
+                        "(the plain NSM, trained with couch-train --net nsm)")
     p.add_argument("--chairs", type=int, default=6, help="held-out simulated chairs")
     p.add_argument("--chair-dir", help="evaluate on these chair meshes instead")
     p.add_argument("--trials", type=int, default=8, help="trials per chair")
@@ -156,6 +160,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = miss_breakdown(misses, labels)
         intervals = contact_intervals(raw, "baseline" if "baseline" in raw else None,
                                       seed=args.seed)
+        if "nsm" in raw:  # the paper's Table 2 also compares with the plain NSM
+            for m, stats in contact_intervals(raw, "nsm", seed=args.seed).items():
+                if "ACE reduction %" in stats:
+                    intervals[m]["ACE reduction vs NSM %"] = stats["ACE reduction %"]
         if args.data:
             sessions = [load_sequence(r) for r in find_sequences(args.data)]
             rows["ground truth"] = ground_truth_row(sessions)
