@@ -8,8 +8,9 @@ its control zeroed. ControlNet runs closed loop: the first active frame of a con
 straight line from the hand to the contact, later frames read its own previous prediction (the
 scheduled-sampling end state it was trained towards). The NSM+Control baseline runs in the same
 loop with the raw contacts (``contact_inputs``) in place of ControlNet's C+, and the plain NSM
-(the paper's Table 2) with no hand input at all: the series still advances and is scored, but
-nothing tells the network where the hands should go.
+(the paper's Table 2) with no hand input at all: it walks to the same sit goal as the others
+(:meth:`Scene.goals`, which moves along a sofa towards the asked contacts), and the series
+advances and is scored, but the network is never told where the hands should go.
 
 Everything is vectorised over the batch of characters (B); the loop runs over frames, as any
 autoregressive controller must. Frames: world metres, +Y up, floor y = 0; the chair mesh is
@@ -325,8 +326,7 @@ class Synthesizer:
 
     Args:
         run_dir: the run folder. ``method`` "couch" needs its ``pose`` and ``control`` nets,
-            "baseline" its ``baseline`` net, "nsm" its ``nsm`` net (the plain NSM, whose sit
-            goal is the seat's, not moved towards the contacts). ``which``: their checkpoints,
+            "baseline" its ``baseline`` net, "nsm" its ``nsm`` net. ``which``: their checkpoints,
             "best", "last" or an epoch number (kept by ``couch-train --keep-epochs``), or per
             network (``{"pose": 14, "control": "best"}``; see
             :func:`couch.synthesis.train.parse_which`).
@@ -713,9 +713,7 @@ class Synthesizer:
         frames = round(seconds * self.cfg.fps)
         if frames < 1:
             raise ValueError(f"seconds must give at least one frame, got {seconds}")
-        # the plain NSM knows no contact, so it sits where the seat is, not beside one
-        goal = scene.goals(np.full_like(series[:, :1], np.nan) if self.method == "nsm"
-                           else series)
+        goal = scene.goals(series)
         state = self._initial_state(goal, starts, len(starts))
         steps = []
         for _ in tqdm(range(frames), desc="synthesis", unit="frame", disable=not progress):
