@@ -130,7 +130,6 @@ def ci_run(motion_sim, tmp_path_factory):
                  keep_epochs=True)
 
 
-
 @pytest.fixture(scope="session")
 def ci_nsm_run(ci_run, motion_sim, tmp_path_factory):
     """A run folder holding :func:`ci_run`'s networks and feature cache (links) and the plain
