@@ -156,9 +156,16 @@ def test_motion_only_dataset(tmp_path):
 
     first = read_processed(tmp_path / "motion_00000.h5")
     assert first.num_frames == summary["sequences"][0]["frames"]
-    simulate_motion_dataset(tmp_path / "again", 1, seed=5, progress=False)
-    assert np.array_equal(read_processed(tmp_path / "again" / "motion_00000.h5").joints,
-                          first.joints)  # deterministic by seed
+    # deterministic by seed, whatever the number of worker processes
+    again = simulate_motion_dataset(tmp_path / "again", 2, seed=5, progress=False, workers=2)
+    assert again["sequences"] == summary["sequences"]
+    for entry in summary["sequences"]:
+        a, b = (read_processed(d / entry["file"]) for d in (tmp_path, tmp_path / "again"))
+        assert np.array_equal(a.joints, b.joints) and np.array_equal(a.body_pose, b.body_pose)
+        assert np.array_equal(a.contact_active, b.contact_active)
+        assert np.array_equal(a.contact_points, b.contact_points, equal_nan=True)
+    with pytest.raises(ValueError, match="--workers must be >= 1"):
+        simulate_motion_dataset(tmp_path / "bad", 1, seed=5, progress=False, workers=0)
 
 
 def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path):

@@ -18,7 +18,8 @@ Output folder (one session)::
     masks/<serial>/NNNNN.png  person masks in colour pixels (with --masks)
 
 ``--motion-only --sequences N`` writes N ground-truth motions (``motion_NNNNN.h5`` in the same
-schema, each with its own subject, chair and interaction) without rendering: training data.
+schema, each with its own subject, chair and interaction) without rendering: training data;
+``--workers N`` draws them on N processes, each sequence from its own stream of the seed.
 Everything is deterministic given ``--seed``; ``--no-color`` skips rendering colour (most of
 the simulation time) and leaves every depth frame, the calibration captures, the IMU and the
 truth as the same seed writes them with colour.
@@ -29,12 +30,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import sys
 import time as wallclock
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from couch import __version__
@@ -102,9 +106,18 @@ def _chair(rng: np.random.Generator, chair: str | None, interaction: str) -> tup
         # a stool offers no hold for a supporting hand
         kinds = [k for k in KINDS if not (k == "stool" and interaction in HAND_INTERACTIONS)]
         kind = str(rng.choice(kinds))
-    if kind not in KINDS:
-        raise ValueError(f"--chair must be one of {KINDS} or an .obj/.ply file, got {chair!r}")
     return make_chair(random_chair_spec(rng, kind)), kind
+
+
+def _check_request(interaction: str | None, chair: str | None) -> None:
+    """ValueError naming the flag when ``interaction`` or ``chair`` (a kind or a mesh file) is
+    not one the simulator knows; None asks for a random one."""
+    if interaction is not None and interaction not in INTERACTION_LABEL:
+        raise ValueError(f"--interaction must be one of {list(INTERACTION_LABEL)}, "
+                         f"got {interaction!r}")
+    if chair is not None and Path(chair).suffix.lower() not in (".obj", ".ply") \
+            and chair not in KINDS:
+        raise ValueError(f"--chair must be one of {KINDS} or an .obj/.ply file, got {chair!r}")
 
 
 class NoPlausibleSequence(ValueError):
@@ -116,10 +129,8 @@ def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyMo
                       duration: float | None = None, max_draws: int = 25,
                       ) -> SimulatedSequence:
     """Draw a chair and a plausible motion on it, retrying draws the checks reject."""
+    _check_request(interaction, chair)
     interaction = interaction or sample_interaction(rng)
-    if interaction not in INTERACTION_LABEL:
-        raise ValueError(f"--interaction must be one of {list(INTERACTION_LABEL)}, "
-                         f"got {interaction!r}")
     last_error: Exception | None = None
     the_chair, kind = _chair(rng, chair, interaction)
     seat = chair_seat_geometry(the_chair.vertices, the_chair.faces, the_chair.landmarks,
@@ -148,42 +159,85 @@ def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyMo
                               f"chair in {max_draws} draws (last: {last_error})")
 
 
+def _motion_slot(i: int, stream: np.random.SeedSequence, out: Path, fps: float,
+                 interaction: str | None, chair: str | None, duration: float | None,
+                 max_draws: int, models: tuple[BodyModel, BodyModel] | None = None,
+                 ) -> tuple[int, dict[str, Any]]:
+    """Slot ``i`` of a ``--motion-only`` dataset, drawn from its own ``stream``: writes
+    ``motion_{i:05d}.h5`` and returns ``(i, its index entry)``, or ``(i, {"sequence": i,
+    "reason": ...})`` when every draw was rejected. The same stream gives the same file in any
+    process."""
+    model, coarse = models or (load_body_model("couch-body"),
+                               load_body_model("couch-body-coarse"))
+    rng = np.random.default_rng(stream)
+    try:
+        seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
+                                duration=duration, max_draws=max_draws)
+    except NoPlausibleSequence as e:
+        # One unlucky chair/subject draw must not throw away the whole dataset: the slot
+        # is skipped, counted and named in index.json.
+        return i, {"sequence": i, "reason": str(e)}
+    times = np.arange(0.0, seq.motion.duration, 1.0 / fps)
+    name = f"motion_{i:05d}"
+    truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=fps)
+    write_processed(out / f"{name}.h5", truth)
+    return i, {"file": f"{name}.h5", "interaction": seq.motion.interaction,
+               "chair": seq.chair_kind, "frames": len(times),
+               "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected}
+
+
+def _init_worker() -> None:
+    # each worker is one of ``workers`` processes on as many cores: one torch thread each
+    torch.set_num_threads(1)
+
+
 def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                             duration: float | None = None, fps: float = 30.0,
                             interaction: str | None = None, chair: str | None = None,
-                            progress: bool = True, max_draws: int = 25) -> dict[str, Any]:
+                            progress: bool = True, max_draws: int = 25,
+                            workers: int = 1) -> dict[str, Any]:
     """``--motion-only``: ground-truth motions, no rendering. Returns the index it writes.
 
+    Slot ``i`` draws from the ``i``-th stream spawned from ``seed``, so the files do not
+    depend on ``workers``: with more than one, the slots run on a pool of that many spawned
+    processes (one torch thread each), which on N cores is about N times as fast.
     A slot whose ``max_draws`` draws are all rejected is skipped and listed under ``"skipped"``
     (sequence number and reason); bad arguments still raise ``ValueError``."""
+    if workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    _check_request(interaction, chair)  # once before any work, not once per slot
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    model, coarse = load_body_model("couch-body"), load_body_model("couch-body-coarse")
     streams = np.random.SeedSequence(seed).spawn(sequences)
-    index = []
-    skipped = []
-    frames = 0
+    args = (out, fps, interaction, chair, duration, max_draws)
     start = wallclock.perf_counter()
-    for i in tqdm(range(sequences), desc="sequences", disable=not progress):
-        rng = np.random.default_rng(streams[i])
-        try:
-            seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
-                                    duration=duration, max_draws=max_draws)
-        except NoPlausibleSequence as e:
-            # One unlucky chair/subject draw must not throw away the whole dataset: the slot
-            # is skipped, counted and named in index.json.
-            skipped.append({"sequence": i, "reason": str(e)})
-            continue
-        times = np.arange(0.0, seq.motion.duration, 1.0 / fps)
-        name = f"motion_{i:05d}"
-        truth = ground_truth(name, seq.motion, times, seq.placement, model, coarse, fps=fps)
-        write_processed(out / f"{name}.h5", truth)
-        frames += len(times)
-        index.append({"file": f"{name}.h5", "interaction": seq.motion.interaction,
-                      "chair": seq.chair_kind, "frames": len(times),
-                      "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected})
+    slots: list[tuple[int, dict[str, Any]]] = []
+    bar = tqdm(total=sequences, desc="sequences", disable=not progress)
+    if workers == 1 or sequences < 2:
+        models = (load_body_model("couch-body"), load_body_model("couch-body-coarse"))
+        for i in range(sequences):
+            slots.append(_motion_slot(i, streams[i], *args, models=models))
+            bar.update()
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(workers, sequences), mp_context=ctx,
+                                 initializer=_init_worker) as pool:
+            futures = [pool.submit(_motion_slot, i, streams[i], *args)
+                       for i in range(sequences)]
+            try:
+                for fut in as_completed(futures):
+                    slots.append(fut.result())
+                    bar.update()
+            except BaseException:  # a failed slot or Ctrl-C: do not wait for the others
+                for fut in futures:
+                    fut.cancel()
+                raise
+    bar.close()
+    slots.sort(key=lambda s: s[0])
+    index = [s for _, s in slots if "file" in s]
+    skipped = [s for _, s in slots if "file" not in s]
     summary = {"couch_version": __version__, "seed": seed, "fps": fps, "sequences": index,
-               "skipped": skipped, "frames": frames,
+               "skipped": skipped, "frames": sum(s["frames"] for s in index),
                "seconds": round(wallclock.perf_counter() - start, 2)}
     with atomic_path(out / "index.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
@@ -306,6 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion-only", action="store_true",
                     help="write ground-truth motion only (no rendering), --sequences of them")
     ap.add_argument("--sequences", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=1, metavar="N",
+                    help="with --motion-only: draw the sequences on N processes (one per "
+                         "core; the files are the same for any N)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
@@ -313,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
             summary = simulate_motion_dataset(
                 args.out_dir, args.sequences, args.seed, None if args.duration == d.duration
                 else args.duration, fps=args.fps, interaction=args.interaction,
-                chair=args.chair, progress=not args.quiet)
+                chair=args.chair, progress=not args.quiet, workers=args.workers)
             print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
                   f"to {args.out_dir} in {summary['seconds']} s")
             for s in summary["skipped"]:
