@@ -44,6 +44,7 @@ from tqdm import tqdm
 from couch import __version__
 from couch.atomic import atomic_path
 from couch.body import BodyModel, load_body_model
+from couch.fitting import cached_model
 from couch.geometry import invert_transform, make_transform
 from couch.schema import write_processed
 from couch.tools.sim.chairs import KINDS, Chair, make_chair, random_chair_spec, save_mesh, scan_pose
@@ -161,14 +162,12 @@ def simulate_sequence(rng: np.random.Generator, model: BodyModel, coarse: BodyMo
 
 def _motion_slot(i: int, stream: np.random.SeedSequence, out: Path, fps: float,
                  interaction: str | None, chair: str | None, duration: float | None,
-                 max_draws: int, models: tuple[BodyModel, BodyModel] | None = None,
-                 ) -> tuple[int, dict[str, Any]]:
+                 max_draws: int) -> tuple[int, dict[str, Any]]:
     """Slot ``i`` of a ``--motion-only`` dataset, drawn from its own ``stream``: writes
     ``motion_{i:05d}.h5`` and returns ``(i, its index entry)``, or ``(i, {"sequence": i,
     "reason": ...})`` when every draw was rejected. The same stream gives the same file in any
-    process."""
-    model, coarse = models or (load_body_model("couch-body"),
-                               load_body_model("couch-body-coarse"))
+    process (the body models are loaded once per process)."""
+    model, coarse = cached_model("couch-body"), cached_model("couch-body-coarse")
     rng = np.random.default_rng(stream)
     try:
         seq = simulate_sequence(rng, model, coarse, interaction=interaction, chair=chair,
@@ -214,9 +213,8 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     slots: list[tuple[int, dict[str, Any]]] = []
     bar = tqdm(total=sequences, desc="sequences", disable=not progress)
     if workers == 1 or sequences < 2:
-        models = (load_body_model("couch-body"), load_body_model("couch-body-coarse"))
         for i in range(sequences):
-            slots.append(_motion_slot(i, streams[i], *args, models=models))
+            slots.append(_motion_slot(i, streams[i], *args))
             bar.update()
     else:
         ctx = multiprocessing.get_context("spawn")
