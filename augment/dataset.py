@@ -43,12 +43,11 @@ import dataclasses
 import json
 import logging
 import math
-import multiprocessing
 import os
 import time
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +76,7 @@ from couch.augment.transfer import contact_parts, sitter_shift, transfer_contact
 from couch.body import CONTACT_NAMES, BodyModel
 from couch.fitting import BodyParams, cached_model, foot_points, foot_skate, pose_body
 from couch.geometry import apply_transform, invert_transform, make_transform
+from couch.pool import finished, spawn_pool
 from couch.schema import SCHEMA_VERSION, ProcessedSession, read_processed, write_session_group
 
 __all__ = [
@@ -428,10 +428,6 @@ def find_processed(paths: Iterable[str | os.PathLike]) -> list[Path]:
     return list(dict.fromkeys(out))
 
 
-def _init_worker() -> None:
-    torch.set_num_threads(1)
-
-
 def _task(session: ProcessedSession, shape: ShapeEntry, scale: float, seed: Sequence[int],
           ik_config: IKConfig | None, max_penetration: float, max_reach: float
           ) -> AugmentResult:
@@ -540,13 +536,11 @@ def augment_dataset(processed: Sequence[str | os.PathLike], shapes_dir: str | os
             finally:
                 torch.set_num_threads(threads)
         else:
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                     initializer=_init_worker) as pool:
+            with spawn_pool(workers) as pool:
                 futures: dict[Future[AugmentResult], int] = {
                     pool.submit(_task, sessions[i], shape, scale, (seed, i, k), *args): index
                     for index, (i, k, shape, scale) in enumerate(tasks)}
-                for fut in as_completed(futures):
+                for fut in finished(futures):
                     record(futures[fut], fut.result(), h5)
                     bar.update()
     bar.close()

@@ -29,11 +29,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import multiprocessing
 import os
 import tempfile
 import time
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +53,7 @@ from couch.fitting import (
 )
 from couch.geometry import apply_transform, fit_rigid_transform
 from couch.overrides import with_overrides
+from couch.pool import finished, spawn_pool
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
@@ -396,12 +396,11 @@ def main(argv: list[str] | None = None) -> int:
             for task in tasks:
                 report(*_timed(*task))
         else:
-            # spawned, not forked: torch's and open3d's thread pools do not survive a fork
-            with ProcessPoolExecutor(max_workers=args.jobs,
-                                     mp_context=multiprocessing.get_context("spawn")) as pool:
+            # each task sets its own thread count (--threads)
+            with spawn_pool(args.jobs, torch_threads=None) as pool:
                 futures: list[Future[tuple[str, SessionAccuracy | str, float]]] = [
                     pool.submit(_timed, *task) for task in tasks]
-                for fut in as_completed(futures):
+                for fut in finished(futures):
                     report(*fut.result())
     # pooled in the sessions' order whatever order they finished in (the intervals resample
     # sessions by index)

@@ -30,15 +30,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import multiprocessing
 import sys
 import time as wallclock
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from couch import __version__
@@ -46,6 +43,7 @@ from couch.atomic import atomic_path
 from couch.body import BodyModel, load_body_model
 from couch.fitting import cached_model
 from couch.geometry import invert_transform, make_transform
+from couch.pool import finished, spawn_pool
 from couch.schema import write_processed
 from couch.tools.sim.chairs import KINDS, Chair, make_chair, random_chair_spec, save_mesh, scan_pose
 from couch.tools.sim.ik import yaw_matrix
@@ -185,11 +183,6 @@ def _motion_slot(i: int, stream: np.random.SeedSequence, out: Path, fps: float,
                "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected}
 
 
-def _init_worker() -> None:
-    # each worker is one of ``workers`` processes on as many cores: one torch thread each
-    torch.set_num_threads(1)
-
-
 def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                             duration: float | None = None, fps: float = 30.0,
                             interaction: str | None = None, chair: str | None = None,
@@ -217,19 +210,12 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
             slots.append(_motion_slot(i, streams[i], *args))
             bar.update()
     else:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(workers, sequences), mp_context=ctx,
-                                 initializer=_init_worker) as pool:
-            futures = [pool.submit(_motion_slot, i, streams[i], *args)
-                       for i in range(sequences)]
-            try:
-                for fut in as_completed(futures):
-                    slots.append(fut.result())
-                    bar.update()
-            except BaseException:  # a failed slot or Ctrl-C: do not wait for the others
-                for fut in futures:
-                    fut.cancel()
-                raise
+        with spawn_pool(min(workers, sequences)) as pool:
+            # a failed slot or Ctrl-C cancels the slots not yet started
+            for fut in finished(pool.submit(_motion_slot, i, streams[i], *args)
+                                for i in range(sequences)):
+                slots.append(fut.result())
+                bar.update()
     bar.close()
     slots.sort(key=lambda s: s[0])
     index = [s for _, s in slots if "file" in s]
