@@ -73,7 +73,7 @@ CASES = [
     ("right_hand", "armchair", 0), ("right_hand", "armchair", 1),
     ("left_hand", "sofa", 0), ("left_hand", "sofa", 2), ("left_hand", "straight", 0),
     ("left_hand", "straight", 1),
-    ("both_hands", "sofa", 1), ("both_hands", None, 11), ("both_hands", None, 13),
+    ("both_hands", "sofa", 1), ("both_hands", None, 17), ("both_hands", None, 13),
     ("no_contact", "stool", 0), ("no_contact", "stool", 1), ("no_contact", "sofa", 0),
     ("free", "straight", 0), ("free", "armchair", 1), ("free", "stool", 1),
     ("locomotion", "straight", 0),

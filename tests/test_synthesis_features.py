@@ -47,7 +47,7 @@ CFG = FeatureConfig()
 def session(tmp_path_factory):
     """One simulated both-hands sequence at 30 fps (~6 s to simulate)."""
     out = tmp_path_factory.mktemp("features_sim")
-    simulate_motion_dataset(out, 1, seed=3, interaction="both_hands", progress=False)
+    simulate_motion_dataset(out, 1, seed=5, interaction="both_hands", progress=False)
     return read_processed(out / "motion_00000.h5")
 
 

@@ -361,9 +361,22 @@ def _union(parts: list[tuple[_Mesh, int]]) -> tuple[np.ndarray, np.ndarray, np.n
                                    f_scalar_array=np.full(len(pf), float(plabel))))
         ms.generate_boolean_union(first_mesh=0, second_mesh=1, transfer_face_quality=True)
         m = ms.current_mesh()
-        v, f, q = m.vertex_matrix(), m.face_matrix(), m.face_scalar_array()
+        v, f, q = m.vertex_matrix(), _first_corner_lowest(m.face_matrix()), m.face_scalar_array()
     return (np.ascontiguousarray(v, np.float64), np.ascontiguousarray(f, np.int64),
             np.rint(q).astype(np.int8))
+
+
+def _first_corner_lowest(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) faces each rotated to start at its lowest vertex index, the winding kept.
+
+    pymeshlab's union gives the same vertices, faces and face order on every call but starts a
+    few faces of a chair at another corner from call to call (very likely an ordering by memory
+    address inside the library). Everything downstream that reads corners in order (surface
+    samples from barycentric weights, normals to the last bit) then differs, and a
+    rejection-sampled draw can flip; with one corner order per face a seed builds one mesh."""
+    f = np.asarray(faces)
+    shift = np.argmin(f, axis=1)[:, None]
+    return np.take_along_axis(f, (shift + np.arange(3)) % 3, axis=1)
 
 
 def _solid_problems(v: np.ndarray, f: np.ndarray) -> list[str]:
