@@ -30,11 +30,10 @@ def spawn_pool(workers: int, *, torch_threads: int | None = 1) -> ProcessPoolExe
     (None: leave torch's default, e.g. when each task sets its own)."""
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    ctx = multiprocessing.get_context("spawn")
-    if torch_threads is None:
-        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
-    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_set_threads,
-                               initargs=(torch_threads,))
+    keep = torch_threads is None
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=None if keep else _set_threads,
+                               initargs=() if keep else (torch_threads,))
 
 
 def finished(futures: Iterable[Future[T]]) -> Iterator[Future[T]]:

@@ -46,12 +46,18 @@ def scene(synth, chair):
     return Scene.from_mesh(chair[0], chair[1], synth.cfg, name="armchair")
 
 
+#: (x, z, heading) of three characters: ahead of the chair, beside it, close in front
+STARTS = np.array([[0.0, 2.5, np.pi], [1.0, 1.0, -2.0], [0.2, 0.9, np.pi]])
+
+
+def _left_armrest(chair) -> np.ndarray:
+    """The contact series of the three: the left hand on the left armrest, the right free."""
+    return np.array([[chair[2], [np.nan] * 3]])
+
+
 @pytest.fixture(scope="module")
 def result(synth, scene, chair):
-    left = chair[2]
-    series = np.array([[left, [np.nan] * 3]])
-    starts = np.array([[0.0, 2.5, np.pi], [1.0, 1.0, -2.0], [0.2, 0.9, np.pi]])
-    return synth.synthesize(scene, starts, series, seconds=3.0)
+    return synth.synthesize(scene, STARTS, _left_armrest(chair), seconds=3.0)
 
 
 def test_scene_goal_sits_on_the_seat(scene):
@@ -167,11 +173,9 @@ def test_hand_ik_runs_in_the_controller(ci_run, scene, chair):
 def locked(ci_run, synth, scene, chair):
     """5 s of three characters without and with ``foot_lock`` (the ci networks' characters may
     not plant a foot, ankle within 10 cm of the floor, in the 3 s of ``result``)."""
-    series = np.array([[chair[2], [np.nan] * 3]])
-    starts = np.array([[0.0, 2.5, np.pi], [1.0, 1.0, -2.0], [0.2, 0.9, np.pi]])
-    plain = synth.synthesize(scene, starts, series, seconds=5.0)
+    plain = synth.synthesize(scene, STARTS, _left_armrest(chair), seconds=5.0)
     syn = Synthesizer(ci_run.run_dir, "couch", foot_lock=True)
-    return plain, syn.synthesize(scene, starts, series, seconds=5.0)
+    return plain, syn.synthesize(scene, STARTS, _left_armrest(chair), seconds=5.0)
 
 
 def test_foot_lock_edits_only_the_legs(locked):
