@@ -53,6 +53,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
 from couch.fitting.params import BodyParams
+from couch.runs import drop_short_runs, fill_gaps, flip_runs, runs, trim_edges
 
 __all__ = [
     "ChairSurface",
@@ -236,67 +237,6 @@ class ChairSurface:
         p = np.asarray(points, dtype=np.float32)
         q = self._scene.compute_closest_points(o3d.core.Tensor(p.reshape(-1, 3)))
         return q["points"].numpy().reshape(p.shape).astype(np.float64)
-
-
-# ----------------------------------------------------------------------- run-length helpers
-
-
-def runs(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Start and end (exclusive) frame indices of the runs of True in a (T,) bool array."""
-    f = np.concatenate([[False], np.asarray(flags, bool), [False]])
-    edges = np.flatnonzero(f[1:] != f[:-1])
-    return edges[0::2], edges[1::2]
-
-
-def _runs_mask(flags: np.ndarray, keep: np.ndarray, starts: np.ndarray, ends: np.ndarray
-               ) -> np.ndarray:
-    """(T,) bool: ``flags`` with the runs [starts, ends) selected by ``keep`` flipped."""
-    out = np.asarray(flags, bool).copy()
-    delta = np.zeros(len(out) + 1, dtype=np.int64)
-    np.add.at(delta, starts[keep], 1)
-    np.add.at(delta, ends[keep], -1)
-    flip = np.cumsum(delta[:-1]) > 0
-    out[flip] = ~out[flip]
-    return out
-
-
-def fill_gaps(flags: np.ndarray, max_frames: int) -> np.ndarray:
-    """(T,) or (T,K) bool with False runs of at most ``max_frames`` between two True runs set
-    True (gaps at the ends of the sequence are not gaps and stay)."""
-    f = np.asarray(flags, bool)
-    if f.ndim == 2:
-        return np.stack([fill_gaps(f[:, k], max_frames) for k in range(f.shape[1])], 1)
-    s, e = runs(~f)
-    inner = (s > 0) & (e < len(f)) & (e - s <= max_frames)
-    return _runs_mask(f, inner, s, e)
-
-
-def drop_short_runs(flags: np.ndarray, min_frames: int) -> np.ndarray:
-    """(T,) or (T,K) bool with True runs shorter than ``min_frames`` set False."""
-    f = np.asarray(flags, bool)
-    if f.ndim == 2:
-        return np.stack([drop_short_runs(f[:, k], min_frames) for k in range(f.shape[1])], 1)
-    s, e = runs(f)
-    return _runs_mask(f, e - s < min_frames, s, e)
-
-
-def trim_edges(flags: np.ndarray, core: np.ndarray) -> np.ndarray:
-    """(T,) or (T,K) bool ``flags`` with each True run cut to the span from its first to its last
-    ``core`` frame (a run without one goes)."""
-    f = np.asarray(flags, bool)
-    core = np.asarray(core, bool)
-    if f.shape != core.shape:
-        raise ValueError(f"trim_edges: flags {f.shape} and core {core.shape} differ")
-    core = core & f
-    if f.ndim == 2:
-        return np.stack([trim_edges(f[:, k], core[:, k]) for k in range(f.shape[1])], 1)
-    out = np.zeros_like(f)
-    idx = np.flatnonzero(core)
-    for a, b in zip(*runs(f), strict=True):
-        inside = idx[(idx >= a) & (idx < b)]
-        if len(inside):
-            out[inside[0]:inside[-1] + 1] = True
-    return out
 
 
 def motion_noise(positions: np.ndarray) -> float:
@@ -624,7 +564,7 @@ def walking(pelvis: np.ndarray, fps: float, config: ContactConfig | None = None)
                      or ((a == 0 or b == len(speed)) and speed[a:b].max() >= cfg.edge_walk_speed
                          and np.ptp(height[a:b]) < cfg.edge_walk_drop)
                      for a, b in zip(s, e, strict=True)], dtype=bool)
-    return _runs_mask(np.zeros(len(speed), bool), fast, s, e)
+    return flip_runs(np.zeros(len(speed), bool), fast, s, e)
 
 
 def _lasting(touch: np.ndarray, window: slice, reach: int) -> np.ndarray:

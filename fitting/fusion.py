@@ -59,6 +59,7 @@ from couch.fitting.metrics import FOOT_KEYPOINTS
 from couch.fitting.params import BodyParams
 from couch.fitting.skinning import Skinner
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from couch.runs import runs
 
 __all__ = ["FusionConfig", "contact_runs", "fuse_motion"]
 
@@ -173,12 +174,8 @@ def _spline_basis(t: int, spacing: int) -> np.ndarray:
 def contact_runs(contact: np.ndarray) -> list[tuple[int, int, int]]:
     """Contiguous runs of contact: (point k, first frame, end frame exclusive) for (T, K) bool."""
     c = np.asarray(contact, dtype=bool)
-    runs = []
-    for k in range(c.shape[1]):
-        edges = np.diff(np.concatenate([[0], c[:, k].astype(np.int8), [0]]))
-        runs += [(k, int(s), int(e)) for s, e in zip(np.flatnonzero(edges == 1),
-                                                     np.flatnonzero(edges == -1), strict=True)]
-    return runs
+    return [(k, int(s), int(e)) for k in range(c.shape[1]) for s, e in zip(*runs(c[:, k]),
+                                                                            strict=True)]
 
 
 def _local_rotations(x: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:

@@ -35,6 +35,7 @@ from couch.atomic import atomic_path
 from couch.body import JOINT_INDEX, NUM_JOINTS, PARENTS
 from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.rotations import Array, axis_angle_to_matrix, matrix_to_6d, sixd_to_matrix
+from couch.runs import runs
 from couch.schema import ProcessedSession
 
 ACTIONS: tuple[str, ...] = ("idle", "walk", "sit")
@@ -306,9 +307,8 @@ def relative_root(root: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 def contact_runs(active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(T,) bool -> (starts, ends) int arrays of the True runs, ends inclusive."""
-    a = np.concatenate([[False], np.asarray(active, bool), [False]]).astype(np.int8)
-    d = np.diff(a)
-    return np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1
+    starts, ends = runs(active)
+    return starts, ends - 1
 
 
 def root_speed(root: np.ndarray, fps: float, smoothing: float = 0.2) -> np.ndarray:

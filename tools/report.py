@@ -43,6 +43,7 @@ from couch.fitting.chair import ChairRegistration, rotation_angle_deg
 from couch.fitting.contacts import Contacts
 from couch.fitting.pipeline import BodyResult, PipelineResult
 from couch.fitting.session import SessionFitConfig
+from couch.runs import runs
 from couch.schema import INTERACTION_LABELS
 from couch.tools.render import Mesh, render
 
@@ -232,9 +233,7 @@ def _save_figure(fig: Figure, path: Path) -> Path:
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """(start, length) of the runs of True in a (T,) bool array."""
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
-    return [(int(a), int(b - a)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+    return [(int(a), int(b - a)) for a, b in zip(*runs(mask), strict=True)]
 
 
 def plot_sync(body: BodyResult, path: Path) -> Path | None:
