@@ -358,9 +358,10 @@ class Synthesizer:
             2.4x the frames/s of one character; its evaluation equals fp32's); "int8" (within
             ~0.3 cm, 3.5x; it changes the motion: over 384 evaluation trials as many contacts
             reached, but fewer trials sat and the feet slid more).
-        foot_lock: after synthesis, hold each planted foot where its plant began by leg IK
-            (:mod:`couch.synthesis.foot_lock`; a post-process the networks do not see, so the
-            path and the hands are unchanged). Off by default: the networks alone.
+        foot_lock: after synthesis, keep each planted foot in place by leg IK (on a leash: a
+            foot the network moves on is dragged after it; :mod:`couch.synthesis.foot_lock`; a
+            post-process the networks do not see, so the path and the hands are
+            unchanged). Off by default: the networks alone.
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: Which = "best",

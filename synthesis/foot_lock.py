@@ -1,13 +1,16 @@
 """Foot locking: the foot-skate clean-up game-animation pipelines run after a motion
 controller (the synthesised feet slide ~1-6 mm/frame, the simulated data's 0.06).
 
-A foot is planted while its ankle is low and slow. During a plant the ankle is held where the
-plant began (horizontally; its height stays the network's) by two-bone IK of hip-knee-ankle,
-and the foot is turned about the vertical back to the heading it began with (its pitch and
-roll stay the network's), so neither ankle nor toe slides; after a plant the hold is released
-over a few frames so the foot does not jump. It is a post-process on the output: the
-networks never see the edited legs (unlike the hand IK, which they are fed back), so it
-cannot change where the character goes or what its hands reach.
+A foot is planted while its ankle is low and slow. During a plant the ankle keeps its place
+(horizontally; its height stays the network's) by two-bone IK of hip-knee-ankle, and the foot
+keeps its heading about the vertical (its pitch and roll stay the network's), so neither
+ankle nor toe slides. The hold is a leash: where the network moves the foot on by more than
+a few centimetres (or the leg would stretch), the foot is dragged after it at the network's
+own step instead of being let go (a let-go hold moves the foot the whole way at once, where
+it is still on the floor); after a plant the offset fades over a few frames so the foot
+does not jump. It is a post-process on the output: the networks never see the edited legs
+(unlike the hand IK, which they are fed back), so it cannot change where the character goes
+or what its hands reach.
 
 Everything is batch first: B characters x T frames, root-frame joints as the controller keeps
 them (positions in metres, global rotations in 6D) and world_from_root transforms.
@@ -22,6 +25,7 @@ import numpy as np
 from couch.body import JOINT_INDEX, Skeleton
 from couch.geometry import apply_transform
 from couch.rotations import axis_angle_to_matrix, matrix_to_6d, sixd_to_matrix
+from couch.runs import drop_short_runs
 from couch.synthesis.features import to_root
 from couch.synthesis.hand_ik import bend_limbs, forward_positions
 
@@ -41,10 +45,11 @@ class FootLockConfig:
     height: the ankle joint at most this high above the floor (m; the SMPL ankle stands ~7 cm
         up). speed: its horizontal speed at most this (m/s; a swinging foot moves at 1-4 m/s).
     min_frames: shorter plants are left alone. release_frames: after a plant the held offset
-        fades to zero over this many frames. max_stretch: a plant ends where holding it would
-        put the ankle farther from the hip than this share of the leg's length, or the
-        foot more than ``max_offset`` (m) or ``max_turn`` (rad) from where the network has it
-        (a foot the network moves slowly to a new place is re-planted there, not frozen).
+        fades to zero over this many frames. The leash: a held foot is never put farther
+        from the hip than ``max_stretch`` of the leg's length, nor more than ``max_offset``
+        (m) or ``max_turn`` (rad) from where the network has it; past that it is dragged
+        after the network's foot (a foot the network moves slowly to a new place follows
+        it, not frozen).
     """
 
     height: float = 0.10
@@ -72,44 +77,51 @@ def planted_feet(ankles: np.ndarray, fps: float, cfg: FootLockConfig = FootLockC
     return (ankles[..., 1] <= cfg.height) & (speed <= cfg.speed)
 
 
-def _hold_offsets(track: np.ndarray, plant: np.ndarray, hip: np.ndarray, ankle: np.ndarray,
-                  leg: float, cfg: FootLockConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(T,K) offsets that keep one foot's ``track`` (T,K: horizontal position x, z and
-    unwrapped heading) at each plant's start and fade out after it, and the (T,) frames held
-    at a plant's start.
+def _leashed_offsets(track: np.ndarray, plant: np.ndarray, hip: np.ndarray, ankle: np.ndarray,
+                     reach: np.ndarray, cfg: FootLockConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(B,T,F,3) offsets to add to each foot's ``track`` (B,T,F,3: horizontal ankle position
+    x, z in m and unwrapped heading in rad) that keep a planted foot where it was, and the
+    (B,T,F) frames where it stayed put.
 
-    plant: (T,) bool; hip, ankle: (T,3) world positions (m); leg: hip-to-ankle length at full
-    extension (m). A plant ends early where holding it would stretch the leg beyond
-    ``cfg.max_stretch`` of that length, or put the foot more than ``cfg.max_offset`` (or
-    ``cfg.max_turn``) from where the network has it (the body has moved on: the foot takes a
-    step); what is left of it, after the release, is a new plant.
+    A planted foot keeps its last position and heading; the offset is a leash: it never grows
+    past ``cfg.max_offset`` (m) or ``cfg.max_turn`` (rad), nor so far that the ankle would lie
+    farther than ``reach`` (F,) (m) from the hip, so a foot the network moves on is dragged
+    after it at the network's own per-frame step, never moving more than the network has it
+    move. After a plant the offset fades to zero over ``cfg.release_frames`` frames (where
+    the foot is lifting or swinging); a plant that begins inside a release carries what is
+    left of it, so the foot never jumps. plant: (B,T,F) bool; hip, ankle: (B,T,F,3) world (m).
     """
-    t_len = len(track)
+    b, t_len, f = plant.shape
+    r = cfg.release_frames
     offset = np.zeros_like(track)
-    hold = np.zeros(t_len, bool)
-    edges = np.diff(np.concatenate([[0], plant.astype(np.int8), [0]]))
-    todo = list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
-    while todo:  # one pass per plant, not per frame
-        s, e = todo.pop(0)
-        if e - s < cfg.min_frames:
-            continue
-        held = np.column_stack([np.full(e - s, track[s, 0]), ankle[s:e, 1],
-                                np.full(e - s, track[s, 1])])
-        drift = track[s] - track[s:e]
-        far = np.flatnonzero((np.linalg.norm(held - hip[s:e], axis=-1) > cfg.max_stretch * leg)
-                             | (np.linalg.norm(drift[:, :2], axis=-1) > cfg.max_offset)
-                             | (np.abs(drift[:, 2]) > cfg.max_turn))
-        if far.size:
-            todo.insert(0, (s + int(far[0]) + cfg.release_frames, e))
-            e = s + int(far[0])
-            if e - s < cfg.min_frames:
-                continue
-        offset[s:e] = drift[:e - s]
-        hold[s:e] = True
-        r = min(cfg.release_frames, t_len - e)
-        fade = 1.0 - np.arange(1, r + 1) / (cfg.release_frames + 1)
-        offset[e:e + r] = offset[e - 1] * fade[:, None]
-    return offset, hold
+    held = np.zeros(plant.shape, bool)
+    off = np.zeros((b, f, 3))
+    since = np.full((b, f), r + 1)  # frames since a plant ended (r + 1: no release pending)
+    # The leash is a recurrence in time: one step per frame, every character and foot at once.
+    for t in range(t_len):
+        p = plant[:, t]
+        step = track[:, t] - track[:, t - 1] if t else np.zeros((b, f, 3))
+        kept = p & plant[:, t - 1] if t else np.zeros((b, f), bool)
+        since = np.where(p, 0, since + 1)
+        # a release's factor per frame: (r+1-k)/(r+2-k) for its k-th frame multiplies out to
+        # a linear fade, (r+1-k)/(r+1), zero from frame r+1 on
+        fade = np.where(p, 1.0, np.clip(r + 1 - since, 0, None) / np.maximum(r + 2 - since, 1))
+        want = np.where(kept[..., None], off - step, off * fade[..., None])
+        norm = np.linalg.norm(want[..., :2], axis=-1)
+        xy = want[..., :2] * np.minimum(1.0, cfg.max_offset / np.maximum(norm, 1e-12))[..., None]
+        # the largest share lam of the offset that keeps |ankle - hip + lam * o| within reach
+        a = ankle[:, t] - hip[:, t]
+        o = np.stack([xy[..., 0], np.zeros_like(norm), xy[..., 1]], -1)
+        oo, ao = (o * o).sum(-1), (a * o).sum(-1)
+        disc = ao ** 2 - oo * ((a * a).sum(-1) - reach ** 2)
+        lam = np.where((oo > 0) & (disc >= 0),
+                       (np.sqrt(np.maximum(disc, 0.0)) - ao) / np.maximum(oo, 1e-24), 0.0)
+        lam = np.where(oo > 0, np.clip(lam, 0.0, 1.0), 1.0)
+        new = np.concatenate([xy * lam[..., None],
+                              np.clip(want[..., 2:], -cfg.max_turn, cfg.max_turn)], -1)
+        offset[:, t] = off = new
+        held[:, t] = p & np.all(np.abs(new - want) < 1e-12, axis=-1)
+    return offset, held
 
 
 def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.ndarray,
@@ -125,8 +137,8 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     Returns:
         new jpos (B,T,J,3), new jrot (B,T,J,6) (hips and knees re-bent, ankles and toes
         turned about the vertical; knees, ankles and toes moved; everything else unchanged)
-        and the frames (B,T,2) whose foot was held where its plant began (the releases
-        after them excluded).
+        and the frames (B,T,2) whose foot stayed where it was (planted, the leash slack;
+        dragged frames and releases excluded).
     """
     root, jpos, jrot = (np.asarray(a, np.float64) for a in (root, jpos, jrot))
     b, t, j = jpos.shape[:3]
@@ -146,13 +158,11 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     foot = toe_w - ankle_w
     heading = np.unwrap(np.arctan2(foot[..., 0], foot[..., 2]), axis=1)  # (B,T,2)
     track = np.concatenate([ankle_w[..., [0, 2]], heading[..., None]], -1)  # (B,T,2,3)
-    offset = np.zeros_like(track)
-    hold = np.zeros(plant.shape, bool)
-    reach = [skeleton.bone_length(h, k) + skeleton.bone_length(k, a) for h, k, a in LEGS]
-    for i in range(b):
-        for f, leg in enumerate(reach):
-            offset[i, :, f], hold[i, :, f] = _hold_offsets(
-                track[i, :, f], plant[i, :, f], hip_w[i, :, f], ankle_w[i, :, f], leg, cfg)
+    reach = cfg.max_stretch * np.array([skeleton.bone_length(h, k) + skeleton.bone_length(k, a)
+                                        for h, k, a in LEGS])
+    plant = drop_short_runs(plant.transpose(1, 0, 2).reshape(t, b * 2), cfg.min_frames)
+    offset, hold = _leashed_offsets(track, plant.reshape(t, b, 2).transpose(1, 0, 2), hip_w,
+                                    ankle_w, reach, cfg)
     goal = ankle_w.copy()
     goal[..., [0, 2]] += offset[..., :2]
     held = np.abs(offset).sum(-1) > 0  # (B,T,2)
@@ -163,7 +173,7 @@ def lock_feet(root: np.ndarray, jpos: np.ndarray, jrot: np.ndarray, rest: np.nda
     for k, d in moved.items():
         out[:, k] += d
     # The foot turns about the vertical through its ankle (the root frame's +Y is the
-    # world's), so its toe keeps the heading the plant began with.
+    # world's), so its toe keeps its heading.
     turn = axis_angle_to_matrix(np.einsum("n,k->nk", offset[..., 2].reshape(-1),
                                           np.array([0.0, 1.0, 0.0]))).reshape(flat, 2, 3, 3)
     for f, (ankle, toe) in enumerate(zip(ankles, toes, strict=True)):
