@@ -4,8 +4,9 @@ Settings: one sequence per interaction type and chair kind below (seed per case)
 model's skeleton, 30 fps sampling. Thresholds: stance feet slide < 1 cm, penetration into the
 chair < 2 cm, no joint outside its anatomical range, planned palm contacts really touch the
 chair (over each hold the palm's closest vertex a median -3 to 6 mm from it, and within 1 cm
-inside to 1.5 cm above it in 80 % of the hold's frames), and the interaction mix follows the
-COUCH dataset's proportions.
+inside to 1.5 cm above it in 80 % of the hold's frames), a sitting pelvis rises less than
+2.5 cm after it has started down, and the interaction mix follows the COUCH dataset's
+proportions.
 """
 
 from __future__ import annotations
@@ -82,10 +83,22 @@ def test_planned_palm_contacts_touch_the_chair(case, sequences):
 #: A known simulator fault this draw shows (since the chairs are built the same on every run,
 #: session 55): the right palm's hold on the sofa's seat during the descent goes from 2.6-3.4 cm
 #: above the seat (6 frames) to 1.1-1.3 cm inside it (6 frames), its median on the surface (the
-#: hover is set from the hold's median). Not traced; likely the palm rolling with the forearm as
-#: the body sinks, which one hover per hold cannot follow.
+#: hover is set from the hold's median). Traced in session 56: the pelvis bounces (see
+#: BOUNCE_FAULT). The penetration push (``motion._penetration_push``) lifts the whole body for any
+#: vertex in the chair, a held palm's too, which the arm IK keeps at its world target whatever
+#: the pelvis does; the seated pass then lowers the body where it floats, the next lifts it
+#: again: the pelvis goes down, up 4 cm, down, up 3.5 cm, and the palm is out of reach (arm
+#: straight) on the high frames and inside on the low ones. Not pushing for held palms ends the
+#: bounce, but this draw's palms then go 5-8 cm into the seat (the seat holds' wrist pose), so
+#: every draw of it is rejected.
 PALM_FAULT = pytest.mark.xfail(strict=True, reason="a seat hold during the descent is not kept "
                                "on the seat (see PALM_FAULT)")
+#: The same draw's pelvis rises 4.1 cm after it has started down (see PALM_FAULT for the cause).
+#: Other draws show it too: arms that pass through the armrests as the body sits lift it the
+#: same way (``simulate_sequence`` seeds 9 and 21: 5.3 and 6.2 cm), and a bar stool whose seat
+#: the planned pelvis goes below lifts it 8 cm late in the sit (seed 13).
+BOUNCE_FAULT = pytest.mark.xfail(strict=True, reason="the pelvis bounces as the body sits "
+                                 "(see BOUNCE_FAULT)")
 
 
 @pytest.mark.parametrize("case", [pytest.param(i, marks=PALM_FAULT) if i == 2 else i
@@ -200,6 +213,20 @@ def test_motion_only_dataset_skips_an_implausible_slot(tmp_path):
     assert not (tmp_path / "motion_00000.h5").exists()
     with pytest.raises(ValueError, match="--chair must be one of"):
         simulate_motion_dataset(tmp_path / "bad", 1, seed=3, chair="throne", progress=False)
+
+
+@pytest.mark.parametrize("case", [pytest.param(i, marks=BOUNCE_FAULT) if i == 2 else i
+                                  for i, c in enumerate(CASES) if c[0] != "locomotion"])
+def test_the_pelvis_goes_down_once(case, sequences):
+    # Sitting down, the pelvis goes down and stays; the planned motion rises up to ~2 cm as it
+    # leaves the walk's height at the sit's start (0.3-2.2 cm on these draws), a pelvis pushed
+    # out of the chair and lowered back onto the seat bounces (session 56).
+    _, _, seq, _ = sequences[case]
+    phases = {name: (a, b) for name, a, b in seq.motion.phases}
+    t, y = seq.motion.time, seq.motion.transl[:, 1]
+    ys = y[(t >= phases["sit"][0]) & (t <= phases["seated"][1])]
+    rise = ys - np.minimum.accumulate(ys)
+    assert rise.max() < 0.025, rise.max()
 
 
 @pytest.mark.parametrize("case", range(len(CASES)))
