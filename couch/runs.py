@@ -17,7 +17,7 @@ def runs(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def flip_runs(flags: np.ndarray, keep: np.ndarray, starts: np.ndarray, ends: np.ndarray
-               ) -> np.ndarray:
+              ) -> np.ndarray:
     """(T,) bool: ``flags`` with the runs [starts, ends) selected by ``keep`` flipped."""
     out = np.asarray(flags, bool).copy()
     delta = np.zeros(len(out) + 1, dtype=np.int64)

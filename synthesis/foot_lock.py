@@ -86,8 +86,8 @@ def _leashed_offsets(track: np.ndarray, plant: np.ndarray, hip: np.ndarray, ankl
     A planted foot keeps its last position and heading; the offset is a leash: it never grows
     past ``cfg.max_offset`` (m) or ``cfg.max_turn`` (rad), nor so far that the ankle would lie
     farther than ``reach`` (F,) (m) from the hip, so a foot the network moves on is dragged
-    after it at the network's own per-frame step, never moving more than the network has it
-    move. After a plant the offset fades to zero over ``cfg.release_frames`` frames (where
+    after it at the network's own per-frame step (faster only where the leg's reach shortens
+    the leash). After a plant the offset fades to zero over ``cfg.release_frames`` frames (where
     the foot is lifting or swinging); a plant that begins inside a release carries what is
     left of it, so the foot never jumps. plant: (B,T,F) bool; hip, ankle: (B,T,F,3) world (m).
     """
