@@ -205,6 +205,18 @@ def test_foot_lock_adds_no_sliding(locked):
     assert np.all(np.array(slide) <= np.array(before) + 1e-9), (slide, before)
 
 
+def test_foot_lock_bench_runs(ci_run, capsys):
+    """Machinery only (``python -m couch.tools.bench.foot_lock``; the ci networks' sliding
+    means nothing): it synthesises without and with the lock and prints both."""
+    from couch.tools.bench import foot_lock as bench
+
+    bench.main([str(ci_run.run_dir), "--chairs", "1", "--starts", "2", "--seconds", "1"])
+    out = capsys.readouterr().out
+    assert "mm/frame without the lock" in out and "of 2 characters" in out
+    with pytest.raises(SystemExit):
+        bench.main([str(ci_run.run_dir), "--chairs", "0"])
+
+
 def test_exports(result, tmp_path):
     session = to_processed(result, 1)
     validate(session)
