@@ -118,7 +118,7 @@ def test_a_hold_out_of_reach_is_dragged(rest, cfg, speed):
         leg = skeleton.bone_length(hip, knee) + skeleton.bone_length(knee, ankle)
         reach = np.linalg.norm(new_pos[0, :, ankle] - new_pos[0, :, hip], axis=-1)
         assert reach.max() <= cfg.max_stretch * leg + 1e-6
-        assert not held[0, :, f].all()  # released at least once
+        assert not held[0, :, f].all()  # dragged at least once
         assert held[0, :, f].any()
 
 
