@@ -4,9 +4,10 @@ Synthesises the same characters twice with :class:`couch.synthesis.Synthesizer` 
 ``--method baseline``), without and with ``foot_lock``, and prints their foot sliding
 (:func:`couch.synthesis.metrics.foot_sliding`, CHOIS's, mm/frame at 30 fps): the mean over the
 characters, the ratio with / without, and how many characters slide more with the lock. The
-lock is a post-process, so both runs take the same paths. Characters: ``--starts`` per chair,
-1.5-3 m away facing anywhere, on ``--chairs`` simulated chairs (straight, armchair, sofa and
-stool in turn), no contact asked, ``--seconds`` each.
+lock is a post-process, so both runs take the same paths. Characters: ``--starts`` per chair on
+``--chairs`` simulated chairs (straight, armchair, sofa and stool in turn), starts and hand
+contacts drawn as ``couch-eval`` draws its trials (:func:`couch.synthesis.evaluation.trial_setup`),
+``--seconds`` each.
 
 Run: ``python -m couch.tools.bench.foot_lock RUN [--chairs 8] [--starts 4] [--seconds 16]
 [--seed 0] [--method couch] [--threads 1]``.
@@ -19,11 +20,9 @@ import argparse
 import numpy as np
 import torch
 
-from couch.synthesis import Scene, Synthesizer
-from couch.synthesis.metrics import foot_sliding
-from couch.tools.sim.chairs import make_chair, random_chair_spec
-
-KINDS = ("straight", "armchair", "sofa", "stool")
+from couch.synthesis import Scene, Synthesizer, foot_sliding
+from couch.synthesis.evaluation import contact_candidates, trial_setup
+from couch.tools.sim.chairs import KINDS, make_chair, random_chair_spec
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -43,17 +42,14 @@ def main(argv: list[str] | None = None) -> None:
     locked = Synthesizer(args.run, args.method, foot_lock=True)
     rng = np.random.default_rng(args.seed)
     slide = {"without": [], "with": []}
-    no_contact = np.full((1, 2, 3), np.nan)
     for c in range(args.chairs):
         kind = KINDS[c % len(KINDS)]
         chair = make_chair(random_chair_spec(rng, kind))
         scene = Scene.from_mesh(chair.vertices, chair.faces, plain.cfg, name=kind)
-        angle = rng.uniform(-np.pi, np.pi, args.starts)
-        dist = rng.uniform(1.5, 3.0, args.starts)
-        starts = np.stack([dist * np.sin(angle), dist * np.cos(angle),
-                           rng.uniform(-np.pi, np.pi, args.starts)], 1)
+        starts, sets, _ = trial_setup(scene, contact_candidates(chair.vertices, chair.faces),
+                                      args.starts, rng)
         for name, syn in (("without", plain), ("with", locked)):
-            r = syn.synthesize(scene, starts, no_contact, seconds=args.seconds)
+            r = syn.synthesize(scene, starts, sets[:, None], seconds=args.seconds)
             slide[name] += [1e3 * foot_sliding(j, r.fps) for j in r.joints]
         print(f"chair {c + 1}/{args.chairs} ({kind}): "
               f"{np.mean(slide['without'][-args.starts:]):.3f} -> "
