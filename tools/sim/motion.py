@@ -514,6 +514,12 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
                 break
             offset = np.clip(offset + push, -0.1, 0.1)
             motion = _solve(*args, offset, fixed or None)
+        # Pushes for what lifting cannot mend (arms in armrests, held palms) make the descent
+        # bounce; hold the pelvis at the height it is lifted to later instead.
+        lifted = _descend_once(motion, offset, phases)
+        if lifted is not offset:
+            offset = lifted
+            motion = _solve(*args, offset, fixed or None)
         # Rest each held palm on the chair: the hover that puts its closest vertex TOUCH_GAP
         # above the surface. Further passes absorb what the re-solved arm, wrist and shared
         # torso bend change (two hands move each other); the closest pass is kept.
@@ -648,6 +654,53 @@ def _penetration_push(model: BodyModel, motion: Motion, chair_mesh: tuple[np.nda
     push = np.where(up > 0, up, dn)
     out = gaussian_filter1d(push, 0.08 * DENSE_HZ, axis=0)
     return np.where(np.abs(out) > 1e-4, out, 0.0)
+
+
+def _descend_once(motion: Motion, offset: np.ndarray, phases: list[tuple[str, float, float]],
+                  min_change: float = 0.001, smooth: float = 0.05) -> np.ndarray:
+    """The pelvis offset (T,3) whose pelvis, once it has started down into the seat, does not
+    rise again before the seated phase ends (``offset`` itself when that changes the pelvis
+    height by less than ``min_change`` m anywhere).
+
+    The penetration push lifts the whole body where any vertex is in the chair (an arm passing
+    through an armrest, a held palm the arm IK keeps at its target, a seat lower than planned),
+    the seated pass lowers it where it floats, and the offset is clipped at 10 cm, so a pushed
+    descent could go down, up by centimetres and down again. From the planned pelvis's highest
+    point (where the descent starts) on, the height is held at the running maximum taken from
+    the end (the height it will be lifted to later, so the body pauses instead of sinking and
+    rising), but never above the descent's start (a lift past it would stand the body up on
+    stretched legs; what a push that large left in the chair, the penetration check judges),
+    then smoothed, which keeps it non-increasing (and rounds a lift's peak down by a few mm).
+
+    Args:
+        motion: the motion solved with ``offset``; its ``transl`` (T,3) m, chair frame, +Y up.
+        offset: (T,3) m, the pelvis offset it was solved with.
+        phases: the motion's ``(name, start s, end s)`` phases.
+        min_change: m; smaller changes are not made, so a draw that does not bounce keeps
+            its motion bit for bit.
+        smooth: s, the smoothing's Gaussian sigma (its ramps take twice that).
+    """
+    sit, seated = _phase(phases, "sit"), _phase(phases, "seated")
+    if sit is None or seated is None:
+        return offset
+    t, y = motion.time, motion.transl[:, 1]
+    span = np.flatnonzero((t >= sit[0]) & (t <= seated[1]))
+    top = span[0] + int(np.argmax(y[span] - offset[span, 1]))
+    if y[span[-1]] >= y[top]:
+        return offset  # a seat at hip height or above (a bar stool) is climbed onto
+    seg = slice(top, span[-1] + 1)
+    level = np.minimum(np.maximum.accumulate(y[seg][::-1])[::-1], y[top])
+    if np.abs(level - y[seg]).max() < min_change:
+        return offset
+    held = gaussian_filter1d(level, smooth * DENSE_HZ, mode="nearest")
+    # Smoothing moves the ends (down at the start, up at the end); blend them back onto the
+    # pelvis outside with ramps that keep the height non-increasing.
+    ramp = smoothstep(np.arange(len(held)) / (2 * smooth * DENSE_HZ))
+    held += (y[top] - held[0]) * (1 - ramp)
+    held -= (held[-1] - y[seg][-1]) * (1 - ramp[::-1])
+    out = offset.copy()
+    out[seg, 1] += held - y[seg]
+    return out
 
 
 def _phase(phases: list[tuple[str, float, float]], name: str) -> tuple[float, float] | None:
