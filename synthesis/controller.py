@@ -60,7 +60,7 @@ from couch.synthesis.features import (
     to_root,
     voxel_grid,
 )
-from couch.synthesis.foot_lock import lock_feet
+from couch.synthesis.foot_lock import FootLockConfig, lock_feet
 from couch.synthesis.hand_ik import ArmRig, reach
 from couch.synthesis.nets import first_linear
 from couch.synthesis.plans import REPLAN_RADIUS, control_step
@@ -361,7 +361,9 @@ class Synthesizer:
         foot_lock: after synthesis, keep each planted foot in place by leg IK (on a leash: a
             foot the network moves on is dragged after it; :mod:`couch.synthesis.foot_lock`; a
             post-process the networks do not see, so the path and the hands are
-            unchanged). Off by default: the networks alone.
+            unchanged). Off by default: the networks alone. True uses the default plant rule
+            and leash; a :class:`~couch.synthesis.foot_lock.FootLockConfig` sets them (a
+            character whose ankles stand higher than SMPL's ~7 cm needs a higher ``height``).
     """
 
     def __init__(self, run_dir: str | Path, method: str = "couch", *, which: Which = "best",
@@ -369,7 +371,7 @@ class Synthesizer:
                  timeout: float = 5.0, blend_radius: float = 1.0, walk_radius: float = 2.0,
                  sit_radius: float = 0.4, replan: float = REPLAN_RADIUS,
                  hand_ik: bool = False, precision: Precision = "fp32",
-                 foot_lock: bool = False) -> None:
+                 foot_lock: bool | FootLockConfig = False) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         if hand_ik and method != "couch":
@@ -406,7 +408,8 @@ class Synthesizer:
         self.hold, self.reach, self.timeout = hold, reach, timeout
         self.blend_radius, self.walk_radius = blend_radius, walk_radius
         self.sit_radius, self.replan = sit_radius, replan
-        self.hand_ik, self.foot_lock = hand_ik, foot_lock
+        self.hand_ik = hand_ik
+        self.foot_lock = FootLockConfig() if foot_lock is True else foot_lock or None
         self._body_setup()
 
     def _setup_io(self, net: str) -> None:
@@ -723,7 +726,8 @@ class Synthesizer:
         b, t = stack["root"].shape[:2]
         if self.foot_lock:
             stack["jpos"], stack["jrot"], _ = lock_feet(stack["root"], stack["jpos"],
-                                                        stack["jrot"], self.rest, self.cfg.fps)
+                                                        stack["jrot"], self.rest, self.cfg.fps,
+                                                        self.foot_lock)
         flat = [stack[k].reshape(b * t, *stack[k].shape[2:]) for k in ("root", "jpos", "jrot")]
         go, bp, tr, joints = self.smpl(*flat)
         return SynthesisResult(
