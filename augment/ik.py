@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 import torch
+from scipy import ndimage
 
 from couch.augment.sdf import SignedDistanceGrid
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
@@ -244,6 +245,9 @@ class IKConfig:
             arms do the work of a hand target.
         transl_weight: cost of the translation correction per cm² (moves with the pelvis).
         plant_weight: cost per cm² of a planted foot point away from its source position.
+        plant_ramp: frames before and after a plant over which that cost fades in and out
+            linearly, so a swing foot's correction is gone by the time the foot lands (a plain
+            on/off cost let the correction snap back 2.5 cm in the frame of touch-down).
         smooth_weight: cost per rad² (and per cm² for translation, times 0.01) of the change of
             the correction between consecutive frames.
         limit_weight: cost per rad² of joint-limit excess beyond the source's own.
@@ -268,6 +272,7 @@ class IKConfig:
     core_weight: float = 10.0
     transl_weight: float = 0.05
     plant_weight: float = 10.0
+    plant_ramp: int = 4
     smooth_weight: float = 20.0
     limit_weight: float = 1000.0
     penetration_weight: float = 1.0
@@ -299,6 +304,17 @@ class IKResult:
     reference: np.ndarray = field(repr=False)
 
 
+def _plant_weights(plant: np.ndarray, ramp: int) -> np.ndarray:
+    """(T, 2) in [0, 1]: 1 on the planted frames of ``plant`` (T, 2) bool, falling linearly to
+    0 over ``ramp`` frames either side of each plant."""
+    out = np.zeros(plant.shape)
+    for k in range(plant.shape[1]):  # two feet
+        if plant[:, k].any():
+            frames = ndimage.distance_transform_edt(~plant[:, k])  # to the nearest plant
+            out[:, k] = np.clip(1.0 - frames / (ramp + 1), 0.0, 1.0)
+    return out
+
+
 def _bounded(raw: torch.Tensor, limit: torch.Tensor) -> torch.Tensor:
     """Scale each (…, 3) rotation vector so its angle is ``limit * tanh(|raw| / limit)``."""
     n = torch.sqrt(raw.square().sum(-1, keepdim=True) + 1e-12)
@@ -328,7 +344,8 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
     - keep the pose: Σ_bones w_j |δ_j|², heavy on spine, legs, root and head;
     - translation: |Δtransl|²;
     - foot plant: for feet flagged in ``plant_feet``, |p − p_src|² of the foot's heel and toe
-      keypoints (their source positions: no new foot skate);
+      keypoints (their source positions: no new foot skate), faded in and out over
+      ``plant_ramp`` frames around each plant (:func:`_plant_weights`);
     - smoothness: |δ_{t+1} − δ_t|² and |Δtransl_{t+1} − Δtransl_t|²;
     - joint limits: the squared excess of each Euler angle beyond its range
       (:func:`couch.fitting.limits.joint_limit_excess`) minus the source's own excess (a
@@ -390,7 +407,7 @@ def reposition(params: BodyParams, model: BodyModel, targets: np.ndarray, *,
             raise ValueError(f"{model.name}: no foot keypoint(s) {', '.join(missing)}")
         foot_ids = torch.as_tensor([[model.keypoint_ids[k] for k in side]
                                     for side in FOOT_POINTS], device=dev)  # (2, P)
-    plant_t = ten(plant)
+    plant_t = ten(_plant_weights(plant, cfg.plant_ramp))
     free = None
     if obstacle is not None:
         exempt = np.zeros((n, model.num_vertices), bool)

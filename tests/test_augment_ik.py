@@ -191,9 +191,9 @@ def test_no_pose_jumps(case):
     j0, j1 = _posed(model, src)[1], _posed(model, r.params)[1]
     jump0 = np.linalg.norm(np.diff(j0, axis=0), axis=-1).max()
     jump1 = np.linalg.norm(np.diff(j1, axis=0), axis=-1).max()
-    # the correction itself (result - source joints) changes little between frames; its
-    # largest changes are at the wrist while the source hand swings ~0.4 m/frame (a fixed world
-    # offset of a fast-moving hand needs a correction that turns with the arm)
+    # the correction itself (result - source joints) changes little between frames. Without
+    # IKConfig.plant_ramp, a swing foot dragged 3 cm by the pelvis's correction could snap back
+    # 2.5 cm in the frame it landed (seen on another draw of this case: 25.2 mm/frame)
     corr = np.linalg.norm(np.diff(j1 - j0, axis=0), axis=-1)
     print(f"largest joint jump: source {jump0:.4f} m/frame, result {jump1:.4f} m/frame; "
           f"change of the correction: median {1000 * np.median(corr):.3f}, 99th "
@@ -300,3 +300,17 @@ def test_bad_input(case):
                    plant_feet=np.zeros((2, 2), bool))
     with pytest.raises(ValueError, match="contact_points must be"):
         reference_vertices(src, model, np.zeros((2, 5, 3)))
+
+
+def test_plant_cost_fades_in_and_out():
+    """1 on planted frames, linear to 0 over plant_ramp frames either side, 0 for a foot
+    that never plants."""
+    from couch.augment.ik import _plant_weights
+
+    plant = np.zeros((14, 2), bool)
+    plant[5:8, 0] = True
+    w = _plant_weights(plant, 3)
+    np.testing.assert_allclose(w[:, 0], [0, 0, 0.25, 0.5, 0.75, 1, 1, 1, 0.75, 0.5, 0.25, 0,
+                                         0, 0])
+    assert not w[:, 1].any()
+    assert np.array_equal(_plant_weights(plant, 0) > 0, plant)

@@ -77,8 +77,12 @@ def test_batched_result_shapes_and_invariants(result, synth):
     assert np.allclose(result.root[..., 1, 3], 0.0)
     assert np.all((result.global_phase >= 0) & (result.global_phase <= 1))
     # Control is on only near its contact (FeatureConfig.control_radius), never for "none".
+    # A frame's control is switched by the root it starts from: the previous frame's output
+    # (the start pose for frame 0).
     on = result.control_on[..., 0]
-    d = result.targets[..., 0, :] - result.root[..., :3, 3]
+    start = np.stack([STARTS[:, 0], np.zeros(len(STARTS)), STARTS[:, 1]], 1)[:, None]
+    before = np.concatenate([start, result.root[:, :-1, :3, 3]], 1)
+    d = result.targets[..., 0, :] - before
     assert np.all(np.hypot(d[..., 0], d[..., 2])[on] < synth.cfg.control_radius)
     assert not result.control_on[..., 1].any()
     assert not on[0, 0]  # starts 2.5 m away
@@ -349,15 +353,25 @@ def test_runtime_features_match_training_features(synth, motion_sim):
     """The controller's J, T, G, I, E for a recorded state equal sequence_features' rows."""
     from couch.synthesis.controller import _State
     from couch.synthesis.data import find_sequences, load_sequence
-    from couch.synthesis.features import canonical_chair, goal_frames, sequence_features
+    from couch.synthesis.features import (
+        SIT,
+        canonical_chair,
+        goal_frames,
+        sample_indices,
+        sequence_features,
+    )
 
     s = canonical_chair(load_sequence(find_sequences([motion_sim])[0]))
     f = sequence_features(s, synth.cfg)
     groups = f.as_groups(drop_last=False)
     scene = Scene.from_mesh(s.object_vertices, s.object_faces, synth.cfg, s.object_pose)
-    goal_frame, _ = goal_frames(f.action_labels == 2, f.action_labels)
+    goal_frame, goal_action = goal_frames(f.action_labels == SIT, f.action_labels)
+    # The runtime only ever heads for a sit: frames whose goal samples all say sit (a sequence
+    # that stands up and walks away has idle / walk goals after its last sit).
+    heading = np.flatnonzero(np.all(goal_action[sample_indices(
+        f.num_frames, synth.cfg.trajectory_offsets)] == SIT, 1))
     h = 30
-    for t in (5, f.num_frames // 2, f.num_frames - 40):
+    for t in (5, heading[len(heading) // 2], heading[-1]):
         idx = np.clip(np.arange(t - h, t), 0, None)
         state = _State(root=f.root[t][None], goal=f.root[goal_frame[t]][None],
                        jpos=f.joint_positions[t][None], jrot=f.joint_rotations[t][None],
