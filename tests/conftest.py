@@ -115,7 +115,7 @@ def motion_sim(tmp_path_factory):
     from couch.tools.sim.session import simulate_motion_dataset
 
     out = tmp_path_factory.mktemp("train_sim")
-    simulate_motion_dataset(out, 5, seed=11, progress=False)
+    simulate_motion_dataset(out, 5, seed=21, progress=False)
     return out
 
 

@@ -978,7 +978,8 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
     The palm lands during the second half of sitting down and stays until part-way through the
     seated phase. Where a target is beyond arm's reach the torso rotates about spine1 (leaning
     forward or sideways, as people do) by the least angle that brings the shoulders within
-    reach; a choice that still cannot be reached is replaced by another candidate.
+    reach, and while a hand moves onto the chair or off it by no more than while it is there;
+    a choice that still cannot be reached is replaced by another candidate.
     Returns side → (target dict with t_on/t_off, contact weight (T,)), and the bent upper
     body's global rotations and positions.
     """
@@ -1055,7 +1056,9 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 1 - smoothstep((time - plan["t_off"]) / 0.5))
             plans[side] = (plan, c)
         extra = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
-        reach = 0.94 * sum(body.arm)
+        # lean until the target is within 0.9 arm lengths: a margin for the elbow (at the
+        # least lean that reaches 0.94, armrest holds straightened the arm into the armrest)
+        reach = 0.90 * sum(body.arm)
         for _ in range(3):
             for side, (plan, c) in plans.items():
                 _, pos = upper_body(extra)
@@ -1068,15 +1071,15 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
                 # that brings it within reach (distance falls monotonically along it)
                 full = Rotation.from_rotvec(normalize(np.cross(u0, u1)) * np.arccos(
                     np.clip((u0 * u1).sum(1), -1, 1))[:, None]).as_rotvec()
-                frac = np.ones(n)
-                for f in np.linspace(0.0, 1.0, 21)[::-1]:
-                    step = Rotation.from_rotvec(full * f)
-                    shoulder = pivot + radius * step.apply(u0)
-                    ok = np.linalg.norm(plan["wrist"] - shoulder, axis=1) < reach
-                    frac = np.where(ok, f, frac)
-                frac = np.where(np.linalg.norm(plan["wrist"] - pivot - lever, axis=1) < reach,
-                                0.0, frac) * c
-                turn = Rotation.from_rotvec(full * frac[:, None]).as_matrix()
+                frac = _least_turn(pivot, radius, u0, full, plan["wrist"], reach)
+                # While the hand moves onto the chair (or off it) it is on its way from the
+                # thigh, not at the target: the torso leans no further than it does while the
+                # hand is there. (Bending c times the lean that would reach the target from the
+                # still-high body swung the torso 60-90 deg mid-descent and back.)
+                angle = np.linalg.norm(full, axis=1) * frac
+                hold = c > 0.95
+                angle = np.minimum(angle, angle[hold].max() if hold.any() else 0.0)
+                turn = Rotation.from_rotvec(normalize(full) * (angle * c)[:, None]).as_matrix()
                 extra = turn @ extra
         g, pos = upper_body(extra)
         bend = np.degrees(Rotation.from_matrix(extra).magnitude())
@@ -1086,6 +1089,26 @@ def _plan_contacts(body: _Body, hand_plan: dict[str, list[tuple[str, np.ndarray,
         if (reach_ok and bend.max() < 45) or fixed is not None:
             return plans, g, pos
     raise ValueError(f"no reachable palm targets for {sorted(hand_plan)} on this chair")
+
+
+def _least_turn(pivot: np.ndarray, radius: np.ndarray, u0: np.ndarray, full: np.ndarray,
+                target: np.ndarray, reach: float, halvings: int = 12) -> np.ndarray:
+    """(n,) least share in [0, 1] of the turn ``full`` (n,3 rotation vectors) that brings a
+    shoulder at ``pivot + radius * u0`` ((n,3), (n,1), (n,3); m) within ``reach`` (m) of
+    ``target`` (n,3): 0 where it already is, 1 where even the full turn does not. Bisected
+    (the distance falls monotonically along the turn), not sampled: twentieths stepped the
+    torso by up to 9 degrees between frames."""
+    def reaches(f: np.ndarray) -> np.ndarray:
+        shoulder = pivot + radius * Rotation.from_rotvec(full * f[:, None]).apply(u0)
+        return np.linalg.norm(target - shoulder, axis=1) < reach
+
+    n = len(full)
+    lo, hi = np.zeros(n), np.ones(n)
+    for _ in range(halvings):
+        mid = 0.5 * (lo + hi)
+        ok = reaches(mid)
+        lo, hi = np.where(ok, lo, mid), np.where(ok, mid, hi)
+    return np.where(reaches(np.zeros(n)), 0.0, hi)
 
 
 def _hand_arc(c: np.ndarray, height: float = 0.12) -> np.ndarray:
