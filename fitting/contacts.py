@@ -32,9 +32,10 @@ chair) extended back to where the subject stopped walking and forward to where t
 again. An episode has one label from what happened in it: free interaction (5) when one foot was
 lifted above the other while seated (crossed ankles or legs), else which hands supported the
 body on the chair (1 right, 2 left, 3 both), else no hand contact (4). A supporting hand is on
-the chair and not on the lap (hands resting on the thighs brush the seat's sides), or on the
-chair while the torso leans towards it as the subject sits down (a palm on the seat right
-beside the thigh touches both).
+the chair palm down and not on the lap (hands resting on the thighs brush the seat's sides;
+hands hanging beside the hips as they come down brush it too, facing the thighs), or on the
+chair while the torso leans towards it as the subject sits down. A palm-down hand below a
+thigh's middle height is on the seat beside the thigh, not on the lap, though it touches both.
 
 Feet on the floor are reported apart from the schema's chair contacts
 (:attr:`Contacts.floor_active`): the schema's /contacts are contacts with the object.
@@ -52,7 +53,9 @@ import torch
 from scipy.ndimage import gaussian_filter1d
 
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
+from couch.fitting.body import world_rotations
 from couch.fitting.params import BodyParams
+from couch.rotations import axis_angle_to_matrix
 from couch.runs import drop_short_runs, fill_gaps, flip_runs, runs, trim_edges
 
 __all__ = [
@@ -66,6 +69,7 @@ __all__ = [
     "hysteresis",
     "interaction_labels",
     "motion_noise",
+    "palm_down",
     "part_distances",
     "runs",
     "side_lean",
@@ -136,6 +140,13 @@ class ContactConfig:
     # turning a second before and let go is no support
     support_gap: float = 0.5
     lap_distance: float = 0.03  # m: a hand this close to a thigh rests on the lap (0: no test)
+    # A hand takes weight on the chair palm down: it supports only while its palm faces the
+    # floor (the cosine of the palm's normal with straight down above this), and a palm-down
+    # hand below a thigh's middle height presses on the seat beside it, not on the lap. A hand
+    # hanging beside the hips as they come down (on its way to the lap, brushing the seat)
+    # faces the thigh (cosine about 0-0.2); a palm on a seat or armrest faces the floor
+    # (0.8-1). On simulated truth motions any value in [0.2, 0.7] reads the same labels.
+    palm_down: float = 0.5
     support_lean: float = 6.0  # deg the torso leans towards a hand that takes weight
     foot_lift: float = 0.05  # m: a seated foot this far above the other is lifted (free)
     min_lift: float = 0.4  # s: a lift this long while seated makes the episode free
@@ -157,6 +168,9 @@ class ContactConfig:
                 or self.floor_leave < self.floor_enter:
             raise ValueError("ContactConfig: leave thresholds must not be below the enter "
                              "thresholds (hysteresis)")
+        if not -1.0 <= self.palm_down <= 1.0:
+            raise ValueError(f"ContactConfig.palm_down is a cosine in [-1, 1], got "
+                             f"{self.palm_down}")
         if self.walk_speed < self.stop_speed:
             raise ValueError("ContactConfig: walk_speed must not be below stop_speed")
 
@@ -416,12 +430,28 @@ def part_distances(verts: np.ndarray, owner: np.ndarray, chair: ChairSurface,
     return part_d, chair.closest(centre)
 
 
-def _thigh_vertices(model: BodyModel) -> np.ndarray:
-    """Vertex ids of the thighs: skinned mostly to a hip joint (where a resting hand lies)."""
+def _thigh_vertices(model: BodyModel) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex ids of the left and right thigh: skinned mostly to that hip joint (where a
+    resting hand lies)."""
     weights = np.asarray(model.weights.detach().cpu().numpy() if torch.is_tensor(model.weights)
                          else model.weights)
-    hips = [JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]]
-    return np.flatnonzero(np.isin(weights.argmax(axis=1), hips))
+    owner = weights.argmax(axis=1)
+    return (np.flatnonzero(owner == JOINT_INDEX["left_hip"]),
+            np.flatnonzero(owner == JOINT_INDEX["right_hip"]))
+
+
+def palm_down(params: BodyParams) -> np.ndarray:
+    """(T,2) cosine of the left/right palm's normal with straight down (world -Y): 1 for a
+    palm flat on a seat, about 0 for a hand hanging beside the hips.
+
+    SMPL's rest pose holds the arms out with the palms down, so the normal is the hand joint's
+    world rotation applied to -Y; its downward component is that rotation's (1, 1) element."""
+    local = axis_angle_to_matrix(np.concatenate(
+        [params.global_orient[:, None], params.body_pose.reshape(params.num_frames, -1, 3)],
+        axis=1).astype(np.float64))  # (T,24,3,3)
+    world = world_rotations(torch.from_numpy(local)).numpy()
+    hands = [JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"]]
+    return world[:, hands, 1, 1]
 
 
 def _hand_thigh_distance(left: np.ndarray, right: np.ndarray, thighs: np.ndarray,
@@ -488,7 +518,7 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     ids = np.concatenate(sets)
     owner = np.concatenate([np.full(len(s), k) for k, s in enumerate(sets)])
     thighs = _thigh_vertices(model)
-    raw, joints = _pose(model, params, np.concatenate([ids, thighs]))  # (T,N+m,3)
+    raw, joints = _pose(model, params, np.concatenate([ids, *thighs]))  # (T,N+m,3)
     noise = motion_noise(raw[:, :len(ids)])
     sigma = smoothing_sigma(noise, cfg.noise_target, cfg.smooth, fps)
     # what per-frame noise is left after that smoothing, against what the guards were made for
@@ -525,15 +555,26 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     floor_points = np.where(floor_active[..., None], floor_points, np.nan).astype(np.float32)
 
     hands = [CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand")]
+    down = _smooth(palm_down(params), sigma, fps)  # (T,2)
     lap = None
     if cfg.lap_distance > 0:
         # A hand near the seat that touches a thigh rests on the lap (sitters put their hands
-        # there), it does not hold on to the chair.
-        thigh_d = _hand_thigh_distance(verts[:, owner == hands[0]], verts[:, owner == hands[1]],
-                                       thigh_v)
-        lap = thigh_d < cfg.lap_distance
+        # there), it does not hold on to the chair; unless it presses palm down on the seat
+        # beside the thigh, below the thigh's middle (a two-hand sit on a sofa puts both palms
+        # there, touching the thighs' sides as the hips come down).
+        left, right = verts[:, owner == hands[0]], verts[:, owner == hands[1]]
+        split = len(thighs[0])
+        per_thigh = np.stack([_hand_thigh_distance(left, right, thigh_v[:, :split]),
+                              _hand_thigh_distance(left, right, thigh_v[:, split:])], 2)
+        nearest_thigh = per_thigh.argmin(axis=2)  # (T,2) 0 left, 1 right thigh
+        thigh_y = np.stack([thigh_v[:, :split, 1].mean(1), thigh_v[:, split:, 1].mean(1)], 1)
+        hand_y = np.stack([left[..., 1].mean(1), right[..., 1].mean(1)], 1)
+        below = hand_y < np.take_along_axis(thigh_y, nearest_thigh, axis=1)
+        seat_palm = below & (down > cfg.palm_down)
+        lap = (per_thigh.min(axis=2) < cfg.lap_distance) & ~seat_palm
     near = contact_flags(distance[:, hands], speed[:, hands], fps, cfg, cfg.support_enter,
                          cfg.support_leave, cfg.support_min_duration)
+    near &= down > cfg.palm_down  # weight goes through a palm facing the floor
     labels = interaction_labels(active, params.transl, floor_distance, fps, cfg, lap,
                                 side_lean(joints), near)
     return Contacts(names=tuple(CONTACT_NAMES), active=active, points=points, labels=labels,
