@@ -137,8 +137,10 @@ class ContactConfig:
     support_before: float = 1.5
     # s: ... and only a touch that lasts to within this long of the landing, or later: a hand
     # that takes weight is on the chair as the pelvis goes down; an armrest brushed while
-    # turning a second before and let go is no support
-    support_gap: float = 0.5
+    # turning a second before and let go is no support. A palm on the seat where a thigh will
+    # land leaves before the hips come down, up to ~0.55 s before the landing (0.5 missed one
+    # such; 0.6-1.2 read the same labels on 128 simulated motions and sessions)
+    support_gap: float = 0.7
     lap_distance: float = 0.03  # m: a hand this close to a thigh rests on the lap (0: no test)
     # A hand takes weight on the chair palm down: it supports only while its palm faces the
     # floor (the cosine of the palm's normal with straight down above this), and a palm-down

@@ -242,10 +242,13 @@ def test_labels_from_synthetic_contacts():
     # ... unless the torso leans onto it while sitting down
     assert set(label(hand_on_lap=lap, lean=np.full(t, np.deg2rad(10)))[32:]) == {3}
     # a left palm that brushed the armrest while turning, a second before the pelvis landed
-    # (and let go 0.9 s before), is no support; still on it 0.2 s before landing, it is
+    # (and let go 0.9 s before), is no support; on the seat until 0.5 s before landing (where
+    # a thigh lands), or still on it 0.2 s before, it is
     active[40:50, li] = False
     active[32:36, li] = True
     assert set(label()[32:]) == {1}
+    active[32:40, li] = True
+    assert set(label()[32:]) == {3}
     active[32:43, li] = True
     assert set(label()[32:]) == {3}
     active[:, [li, ri]] = False
