@@ -263,7 +263,7 @@ def test_labels_from_synthetic_contacts():
 def test_palm_down_follows_the_hand():
     """The palm's facing from the pose: SMPL's rest pose holds the palms down; turning the
     left hand a quarter about the forearm (the world x axis at rest) faces it sideways, a
-    body upside down faces both palms up. Checked against the posed mesh's palm normal."""
+    body upside down faces both palms up. Checked against where the posed mesh's palm lies."""
     t = 3
     pose = np.zeros((t, 69))
     j = JOINT_INDEX["left_hand"] - 1  # body_pose has no pelvis
