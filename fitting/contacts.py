@@ -53,9 +53,7 @@ import torch
 from scipy.ndimage import gaussian_filter1d
 
 from couch.body import CONTACT_NAMES, JOINT_INDEX, BodyModel
-from couch.fitting.body import world_rotations
 from couch.fitting.params import BodyParams
-from couch.rotations import axis_angle_to_matrix
 from couch.runs import drop_short_runs, fill_gaps, flip_runs, runs, trim_edges
 
 __all__ = [
@@ -448,12 +446,8 @@ def palm_down(params: BodyParams) -> np.ndarray:
 
     SMPL's rest pose holds the arms out with the palms down, so the normal is the hand joint's
     world rotation applied to -Y; its downward component is that rotation's (1, 1) element."""
-    local = axis_angle_to_matrix(np.concatenate(
-        [params.global_orient[:, None], params.body_pose.reshape(params.num_frames, -1, 3)],
-        axis=1).astype(np.float64))  # (T,24,3,3)
-    world = world_rotations(torch.from_numpy(local)).numpy()
     hands = [JOINT_INDEX["left_hand"], JOINT_INDEX["right_hand"]]
-    return world[:, hands, 1, 1]
+    return params.bone_rotations()[:, hands, 1, 1]
 
 
 def _hand_thigh_distance(left: np.ndarray, right: np.ndarray, thighs: np.ndarray,
@@ -565,11 +559,10 @@ def detect_contacts(params: BodyParams, model: BodyModel,
         # beside the thigh, below the thigh's middle (a two-hand sit on a sofa puts both palms
         # there, touching the thighs' sides as the hips come down).
         left, right = verts[:, owner == hands[0]], verts[:, owner == hands[1]]
-        split = len(thighs[0])
-        per_thigh = np.stack([_hand_thigh_distance(left, right, thigh_v[:, :split]),
-                              _hand_thigh_distance(left, right, thigh_v[:, split:])], 2)
+        sides = np.split(thigh_v, [len(thighs[0])], axis=1)  # left, right thigh (T,m,3)
+        per_thigh = np.stack([_hand_thigh_distance(left, right, th) for th in sides], 2)
         nearest_thigh = per_thigh.argmin(axis=2)  # (T,2) 0 left, 1 right thigh
-        thigh_y = np.stack([thigh_v[:, :split, 1].mean(1), thigh_v[:, split:, 1].mean(1)], 1)
+        thigh_y = np.stack([th[..., 1].mean(1) for th in sides], 1)
         hand_y = np.stack([left[..., 1].mean(1), right[..., 1].mean(1)], 1)
         below = hand_y < np.take_along_axis(thigh_y, nearest_thigh, axis=1)
         seat_palm = below & (down > cfg.palm_down)
