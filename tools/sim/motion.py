@@ -88,6 +88,9 @@ class MotionConfig:
     stand_and_leave: float = 0.5  # probability of standing up and walking away
     beta_std: float = 1.0
     max_penetration: float = 0.018  # m; deeper sequences are rejected (MotionRejected)
+    # m; a held palm whose closest vertex is further above the chair than this over its hold
+    # (median) is rejected (MotionRejected): half the ground truth's 2 cm contact distance
+    max_palm_gap: float = 0.01
     sitter_half_room: float = 0.3  # m from the pelvis to a seat's side edge, at the closest
 
 
@@ -360,7 +363,8 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
     """One human-chair sequence in the chair frame.
 
     Raises ValueError (no reachable hand target) or :class:`MotionRejected` (the settled body
-    still penetrates the chair) when this draw cannot be done; callers draw again.
+    still penetrates the chair, or a held palm stays above its target) when this draw cannot
+    be done; callers draw again.
 
     Args:
         model: the body model whose skeleton the poses are solved for (feet and hands reach
@@ -524,12 +528,12 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         # above the surface. Further passes absorb what the re-solved arm, wrist and shared
         # torso bend change (two hands move each other); the closest pass is kept.
         settled, planned = motion, fixed
-        best, best_fixed, best_miss = motion, fixed, np.inf
+        best, best_fixed, best_miss, best_gaps = motion, fixed, np.inf, {}
         for k in range(7 if fixed else 0):
             gaps = _palm_gaps(collision_model or model, motion, chair_mesh)
             miss = max(abs(g - TOUCH_GAP) for g in gaps.values())
             if miss < best_miss:
-                best, best_fixed, best_miss = motion, fixed, miss
+                best, best_fixed, best_miss, best_gaps = motion, fixed, miss, gaps
             if miss < 0.001 or k == 6:
                 break
             fixed = {side: (*f[:5], float(np.clip(f[5] - (gaps[side] - TOUCH_GAP), -0.02, 0.05)))
@@ -554,6 +558,16 @@ def generate_motion(model: BodyModel, seat: SeatGeometry, rng: np.random.Generat
         if depth > cfg.max_penetration:
             raise MotionRejected(f"the body passes {100 * depth:.1f} cm into the chair "
                                  f"(limit {100 * cfg.max_penetration:.1f} cm)")
+        # A palm the arm cannot bring down to its target (the pelvis held up over the descent
+        # leaves the shoulder too high) touches for less of its hold than the plan says, or not
+        # at all: the sequence's label would claim a support its motion does not show.
+        gaps = best_gaps if motion is best else _palm_gaps(collision_model or model, motion,
+                                                           chair_mesh)
+        for side, gap in gaps.items():
+            if gap > cfg.max_palm_gap:
+                raise MotionRejected(f"the {side} palm stays {100 * gap:.1f} cm above its "
+                                     f"target over its hold (limit "
+                                     f"{100 * cfg.max_palm_gap:.1f} cm)")
     return motion
 
 
