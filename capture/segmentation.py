@@ -32,8 +32,11 @@ Pipeline per camera (everything vectorised over pixels):
    (3-D) of a kept one (a hand seen between the chair's legs). Invalid pixels (no return) next
    to the mask where the room is in range join it — the rim of a body seen at too grazing an
    angle for the sensor, a dropout — and so do invalid holes and notches that a 3x3 closing
-   fills. Flying pixels (mixed depths at depth edges, found by the 3x3 depth range relative to
-   depth) and thin boundary noise (a morphological opening) are kept in the *mask* (at a
+   fills. Flying pixels (mixed depths at depth edges: a 3x3 depth range large relative to
+   depth, and fewer than ``edge_support`` neighbours within ``edge_support_ratio`` of the
+   pixel's own depth, :func:`flying_pixels`; a thin limb's pixels all touch an edge but have
+   their limb around them) and thin boundary noise (a morphological opening) are kept in the
+   *mask* (at a
    silhouette such a pixel is as likely person as not, and opening erodes thin limbs) but
    excluded from ``reliable``, the seeds a point cloud may use. Everything after the seeds runs
    on the bounding box of the grown seeds.
@@ -87,6 +90,7 @@ __all__ = [
     "chair_pixels",
     "depth_edges",
     "empty_room_recording",
+    "flying_pixels",
     "foreground",
     "mask_to_color",
     "room_on_chair",
@@ -119,6 +123,10 @@ class SegmentationConfig:
     margin_per_m2: float = 0.002  # ... plus this times z² (z in metres)
     floor_tolerance: float = 0.02  # m above the floor plane y = 0 that still counts as floor
     edge_ratio: float = 0.03  # 3x3 depth range / depth above which a pixel sits on an edge
+    # ... where it is a flying (mixed) depth unless this many of its 8 neighbours lie within
+    # edge_support_ratio · depth of it (its own surface)
+    edge_support: int = 3
+    edge_support_ratio: float = 0.01
     open_px: int = 3  # opening of the reliable (point cloud) pixels (px); 1 = none
     weak_fraction: float = 0.5  # hysteresis: connected to the foreground, this share of the
     #                              margin suffices, at any height (soles, a palm on the chair)
@@ -295,6 +303,27 @@ def depth_edges(depth_mm: np.ndarray, ratio: float) -> np.ndarray:
     return ((hi - lo) > ratio * z) | near_invalid
 
 
+def flying_pixels(depth_mm: np.ndarray, ratio: float, support_ratio: float,
+                  min_support: int) -> np.ndarray:
+    """(H,W) bool: the :func:`depth_edges` pixels that no surface of their own backs, i.e. with
+    fewer than ``min_support`` of their 8 neighbours within ``support_ratio``·depth of their
+    depth. A flying (mixed) depth lies between the two surfaces it mixes and so near neither;
+    a pixel of a limb seen a few pixels wide in front of a far background (a hand at 2.5 m
+    is 4-6 binned pixels) touches the edge everywhere but has its own limb around it."""
+    z = depth_mm.astype(np.float32)
+    p = np.pad(z, 1)
+    h, w = z.shape
+    tol = np.float32(support_ratio) * z
+    support = np.zeros((h, w), np.int32)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            nb = p[dy:dy + h, dx:dx + w]
+            support += (nb > 0) & (np.abs(nb - z) <= tol)
+    return depth_edges(depth_mm, ratio) & (support < min_support)
+
+
 @dataclasses.dataclass(frozen=True)
 class _View:
     """One camera's per-pixel constants, computed once per recording.
@@ -439,7 +468,8 @@ def _foreground(depth_mm: np.ndarray, background: BackgroundModel, view: _View,
     m = _keep_components(region.view(bool)[box], d, crop, cfg, depth_mm.size)
     # what a point cloud may use: no depth-edge (flying) pixels, no thin boundary noise. The
     # silhouette keeps both: opening it costs more IoU at thin limbs than the noise does.
-    rel = m & seeds[box] & ~depth_edges(d, cfg.edge_ratio)
+    rel = m & seeds[box] & ~flying_pixels(d, cfg.edge_ratio, cfg.edge_support_ratio,
+                                           cfg.edge_support)
     if cfg.open_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.open_px, cfg.open_px))
         rel = cv2.morphologyEx(rel.view(np.uint8), cv2.MORPH_OPEN, kernel).view(bool)

@@ -17,7 +17,8 @@ Measured (printed by the tests with ``-s``; session 55, when the simulator becam
 and seed 3's session no longer drew): person-mask IoU in colour pixels, empty-room background:
 seed 5 mean 0.977, per frame >= 0.967; seed 7 mean 0.978, >= 0.964; fallback background, seed
 5: mean 0.976, >= 0.966. Fused person cloud (reliable pixels) to the clothed surface: median
-1.9 mm (seed 5; p90 4.8-5.0 mm); to the unclothed body ~11 mm (signed: outside, the clothing).
+1.8 mm (seed 5; p90 4.7-4.9 mm; session 61, with a thin limb's edge pixels kept: 1.9 and
+4.8-5.0 before); to the unclothed body ~11 mm (signed: outside, the clothing).
 Chair cloud to the chair mesh 1.5-1.7 mm. Seed 15's both-hands session, tried first, reads IoU
 0.84-0.87 on one camera: the missed pixels are a strip along the person's side where an object
 nearer that camera covers them in the depth image (likely parallax at the occluder's edge: the
