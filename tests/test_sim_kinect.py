@@ -227,9 +227,9 @@ def test_flying_pixels_only_at_depth_edges(calib: KinectCalibration) -> None:
 
 
 def test_flying_pixel_filter_keeps_a_thin_limb(calib: KinectCalibration) -> None:
-    # A bar as thin as a hand seen side-on in the binned depth mode: 2.5 cm wide at 2.5 m, 35 cm
-    # in front of a wall, a few pixels across, each of them next to the depth edge. The sensor's
-    # full noise, flying pixels included.
+    # A bar a few pixels across, as a hand is in the binned depth mode: 1.2 cm wide at 2.5 m
+    # (about 2.4 of this unbinned camera's pixels), 35 cm in front of a wall, each pixel next
+    # to the depth edge. The sensor's full noise, flying pixels included.
     cfg = SegmentationConfig()
     scene = kinect.build_scene([plane([0, 0, 2.85], [0, 0, -1]),
                                 box(np.array([0.0, 0.0, 2.5]), [0.012, 0.6, 0.04], np.eye(3))])
