@@ -22,9 +22,10 @@ half-written is left behind. Problems a session survives (a dropped camera, skip
 symmetric chair) are *warnings*.
 
 The cache lives in ``<output>/cache/``: one HDF5 record per stage (:mod:`couch.records`),
-named by a key that hashes the couch version, the stage's config, the stage's input files
-(path, size and modification time, as ``make`` does) and the keys of the stages it uses, so a
-re-run resumes where the last one stopped and a changed input re-runs what depends on it.
+named by a key that hashes the code that computes the results (:func:`code_digest`), the stage's
+config, the stage's input files (path, size and modification time, as ``make`` does) and the keys
+of the stages it uses, so a re-run resumes where the last one stopped, a changed input re-runs
+what depends on it, and a changed couch (a new release, a changed default, a fix) re-runs all.
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from couch import __version__
 from couch.atomic import atomic_path
 from couch.body.skeleton import CONTACT_NAMES
 from couch.capture.azure_mkv import open_azure_mkv
@@ -69,6 +69,7 @@ from couch.fitting.params import BodyParams
 from couch.fitting.session import SessionFit, SessionFitConfig, fit_session
 from couch.records import RecordError, read_record, write_record
 from couch.schema import ProcessedSession, write_processed
+from couch.sources import source_digest
 from couch.sync import SessionSync, sync_session
 from couch.sync.imu import imu_head_top, imu_sample_times
 
@@ -304,10 +305,31 @@ def _config_json(obj: Any) -> Any:
     return repr(obj)
 
 
+# the modules whose code each stage runs (couch.sources follows their imports); the pipeline's
+# own file is hashed into every key, its imports are not followed (they are all of couch)
+STAGE_CODE: dict[str, tuple[str, ...]] = {
+    "calibrate": ("couch.capture.calibration", "couch.capture.session", "couch.capture.azure_mkv"),
+    "chair": ("couch.fitting.chair", "couch.sync"),
+    "body": ("couch.fitting.session", "couch.fitting.body", "couch.sync"),
+    "contacts": ("couch.fitting.contacts", "couch.fitting.body"),
+}
+
+
+def code_digest(stage: str) -> str:
+    """Hex sha256 of the code that computes ``stage`` (:data:`STAGE_CODE`, with what it imports,
+    and this file). It stands in the keys for the version: a release number does not change
+    when a default or a fix does, so keys built on it served results the code no longer
+    computes."""
+    own = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+    return hashlib.sha256(f"{own}{source_digest(STAGE_CODE[stage])}".encode()).hexdigest()
+
+
 def stage_key(stage: str, config: Any, inputs: Sequence[Path | None], upstream: Sequence[str],
-              extra: Any = None) -> str:
-    """Hex sha256 of what a stage's result depends on."""
-    doc = {"stage": stage, "couch": __version__, "config": _config_json(config),
+              extra: Any = None, code: str | None = None) -> str:
+    """Hex sha256 of what a stage's result depends on; ``code``: the stage's
+    :func:`code_digest` (None: the code this process runs)."""
+    doc = {"stage": stage, "code": code_digest(stage) if code is None else code,
+           "config": _config_json(config),
            "inputs": _fingerprint(inputs), "upstream": list(upstream), "extra": extra}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 

@@ -27,6 +27,7 @@ import pytest
 import couch
 from couch.body.skeleton import CONTACT_NAMES
 from couch.capture.azure_mkv import open_azure_mkv
+from couch.fitting import pipeline
 from couch.fitting.metrics import mpjpe
 from couch.fitting.pipeline import STAGES, ProcessError, run_pipeline
 from couch.geometry import apply_transform
@@ -227,6 +228,20 @@ def test_rerun_resumes_from_the_cache(run, tmp_path):
     a, b = read_processed(run.processed), read_processed(again.processed)
     assert np.array_equal(a.joints, b.joints) and np.array_equal(a.object_pose, b.object_pose)
     assert np.array_equal(a.contact_active, b.contact_active)
+
+
+def test_changed_code_reruns_the_stages_it_computes(run, tmp_path, monkeypatch):
+    """The keys hash each stage's code, not the release number: a changed default or a fix
+    re-runs the stages that run it, and those using their results, from a cache the old code
+    wrote (the version stays 0.1.0 through both)."""
+    out = tmp_path / "out"
+    shutil.copytree(run.output / "cache", out / "cache")
+    old = pipeline.code_digest
+    monkeypatch.setattr(pipeline, "code_digest",
+                        lambda stage: "0" * 64 if stage == "chair" else old(stage))
+    changed = run_pipeline(FIXTURE, out, stages="chair")
+    assert changed.ok
+    assert [changed.stages[s].status for s in ("calibrate", "chair")] == ["cached", "ran"]
 
 
 def test_frame_range_refits_only_the_body(run, tmp_path):
