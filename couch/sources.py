@@ -31,18 +31,26 @@ def _module_file(name: str) -> Path | None:
     return Path(spec.origin)
 
 
-def _imports(path: Path, package: str) -> set[str]:
-    """Module names of ``package`` that ``path`` imports: ``import a.b`` gives ``a.b``;
-    ``from a.b import c`` gives ``a.b.c`` when that is a module, else ``a.b``."""
+def _imports(path: Path, module: str) -> set[str]:
+    """Module names of ``module``'s top-level package that its file ``path`` imports:
+    ``import a.b`` gives ``a.b``; ``from a.b import c`` gives ``a.b.c`` when that is a module,
+    else ``a.b``; relative imports are resolved against ``module``'s package."""
+    here = module if path.name == "__init__.py" else module.rpartition(".")[0]
     out: set[str] = set()
     for node in ast.walk(ast.parse(path.read_bytes(), filename=str(path))):
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here.rsplit(".", node.level - 1)[0] if node.level > 1 else here
+                source = f"{base}.{node.module}" if node.module else base
+            else:
+                source = node.module or ""
             for a in node.names:
-                sub = f"{node.module}.{a.name}"
-                out.add(sub if _module_file(sub) is not None else node.module)
-    return {m for m in out if m == package or m.startswith(package + ".")}
+                sub = f"{source}.{a.name}"
+                out.add(sub if _module_file(sub) is not None else source)
+    top = module.split(".")[0]
+    return {m for m in out if m == top or m.startswith(top + ".")}
 
 
 def module_closure(entries: Iterable[str]) -> dict[str, Path]:
@@ -62,7 +70,7 @@ def module_closure(entries: Iterable[str]) -> dict[str, Path]:
         if path is None:
             raise ModuleNotFoundError(f"{name} is not a Python source module")
         found[name] = path
-        todo.extend(_imports(path, name.split(".")[0]))
+        todo.extend(_imports(path, name))
     return found
 
 

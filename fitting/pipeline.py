@@ -24,8 +24,8 @@ symmetric chair) are *warnings*.
 The cache lives in ``<output>/cache/``: one HDF5 record per stage (:mod:`couch.records`),
 named by a key that hashes the code that computes the results (:func:`code_digest`), the stage's
 config, the stage's input files (path, size and modification time, as ``make`` does) and the keys
-of the stages it uses, so a re-run resumes where the last one stopped, a changed input re-runs
-what depends on it, and a changed couch (a new release, a changed default, a fix) re-runs all.
+of the stages it uses, so a re-run resumes where the last one stopped, and a changed input or a
+changed stage's code (a changed default, a fix) re-runs that stage and those after it.
 """
 
 from __future__ import annotations
@@ -325,10 +325,9 @@ def code_digest(stage: str) -> str:
 
 
 def stage_key(stage: str, config: Any, inputs: Sequence[Path | None], upstream: Sequence[str],
-              extra: Any = None, code: str | None = None) -> str:
-    """Hex sha256 of what a stage's result depends on; ``code``: the stage's
-    :func:`code_digest` (None: the code this process runs)."""
-    doc = {"stage": stage, "code": code_digest(stage) if code is None else code,
+              extra: Any = None) -> str:
+    """Hex sha256 of what a stage's result depends on, the stage's :func:`code_digest` too."""
+    doc = {"stage": stage, "code": code_digest(stage),
            "config": _config_json(config),
            "inputs": _fingerprint(inputs), "upstream": list(upstream), "extra": extra}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()

@@ -13,7 +13,8 @@ from couch.sources import module_closure, source_digest
 @pytest.fixture
 def pkg(tmp_path, monkeypatch):
     """A package ``toy``: ``toy.a`` imports ``toy.b`` lazily, inside a function, and a name from
-    ``toy.sub``; ``toy.c`` is imported by nothing; ``toy/sub/data/`` holds a data file."""
+    ``toy.sub``; ``toy.sub.rel`` imports both relatively; ``toy.c`` is imported by nothing;
+    ``toy/sub/data/`` holds a data file."""
     root = tmp_path / "toy"
     (root / "sub" / "data").mkdir(parents=True)
     (root / "__init__.py").write_text("")
@@ -22,6 +23,7 @@ def pkg(tmp_path, monkeypatch):
     (root / "b.py").write_text("Y = 2\n")
     (root / "c.py").write_text("Z = 3\n")
     (root / "sub" / "__init__.py").write_text("K = 1\n")
+    (root / "sub" / "rel.py").write_text("from . import K\nfrom ..b import Y\n")
     (root / "sub" / "data" / "weights.txt").write_text("0.5\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     yield root
@@ -37,6 +39,8 @@ def _digest(*entries: str) -> str:
 
 def test_closure_follows_imports_within_the_package(pkg):
     assert sorted(module_closure(["toy.a"])) == ["toy.a", "toy.b", "toy.sub"]
+    # relative imports, one and two levels up
+    assert sorted(module_closure(["toy.sub.rel"])) == ["toy.b", "toy.sub", "toy.sub.rel"]
     with pytest.raises(ModuleNotFoundError, match=r"toy\.nothing"):
         module_closure(["toy.nothing"])
 
