@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from couch.body import JOINT_INDEX, load_body_model
 from couch.body.limits import joint_limit_excess_deg
-from couch.body.skeleton import PARENTS
+from couch.fitting.body import world_rotations
 from couch.tools.sim import motion as sim_motion
 from couch.tools.sim.chairs import make_chair, random_chair_spec
 from couch.tools.sim.motion import INTERACTION_MIX, sample_interaction
@@ -148,26 +148,30 @@ def test_palms_rest_part_way_when_resting_them_goes_in(sequences, models, monkey
     assert rest < part_way < rest + 0.5 * (planned - rest), (rest, part_way, planned)
 
 
+def _bench_first_draw(models, seed: int, kind: str, interaction: str,
+                      config: sim_motion.MotionConfig | None = None):
+    """The accuracy bench's first motion draw for a session seed, as ``simulate_sequence``
+    draws it (the chair first, from the same generator), and its chair."""
+    full, coarse = models
+    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(4)[0])
+    chair = make_chair(random_chair_spec(rng, kind))
+    seat = chair_seat_geometry(chair.vertices, chair.faces, chair.landmarks, chair.face_parts)
+    return sim_motion.generate_motion(full, seat, rng, interaction=interaction, duration=8.0,
+                                      config=config, chair_mesh=(chair.vertices, chair.faces),
+                                      collision_model=coarse), chair
+
+
 def test_a_palm_the_arm_cannot_bring_down_is_rejected(models):
     # The accuracy bench's sofa-both+2000 first draw: the left palm's seat hold starts 0.08 s
     # before the landing, but the pelvis, held up over the descent, keeps the shoulder too high
     # for the straight arm; the palm hangs 4-6 cm above the seat through most of its hold and
     # touches for 0.27 s from 0.2 s after the landing. Its label said both hands supported; the
     # detector, reading 0.27 s of touch, said the right hand only (on the truth motion too).
-    full, coarse = models
-
-    def first_draw(config):
-        rng = np.random.default_rng(np.random.SeedSequence(2023).spawn(4)[0])
-        chair = make_chair(random_chair_spec(rng, "sofa"))  # as simulate_sequence draws it
-        seat = chair_seat_geometry(chair.vertices, chair.faces, chair.landmarks, chair.face_parts)
-        return sim_motion.generate_motion(full, seat, rng, interaction="both_hands",
-                                          duration=8.0, config=config,
-                                          chair_mesh=(chair.vertices, chair.faces),
-                                          collision_model=coarse), chair
-
+    _, coarse = models
     with pytest.raises(sim_motion.MotionRejected, match=r"left palm stays .* above its target"):
-        first_draw(None)
-    motion, chair = first_draw(sim_motion.MotionConfig(max_palm_gap=np.inf))
+        _bench_first_draw(models, 2023, "sofa", "both_hands")
+    motion, chair = _bench_first_draw(models, 2023, "sofa", "both_hands",
+                                      sim_motion.MotionConfig(max_palm_gap=np.inf))
     gaps = sim_motion._palm_gaps(coarse, motion, (chair.vertices, chair.faces))
     # measured: left 3.8 cm above the seat over its hold (median), right 0.4 cm
     assert gaps["left"] > 0.03 and gaps["right"] < 0.006, gaps
@@ -182,22 +186,13 @@ def test_a_palm_held_on_an_armrest_does_not_turn(models):
     # landed over the hold, at up to 10,000 degrees/s (85 degrees in one 120 Hz frame;
     # measured). Strict, and only for the assertion: a mend makes this pass, and then the
     # marker goes.
-    full, coarse = models
-    rng = np.random.default_rng(np.random.SeedSequence(2005).spawn(4)[0])
-    chair = make_chair(random_chair_spec(rng, "armchair"))  # as simulate_sequence draws it
-    seat = chair_seat_geometry(chair.vertices, chair.faces, chair.landmarks, chair.face_parts)
-    motion = sim_motion.generate_motion(full, seat, rng, interaction="right_hand", duration=8.0,
-                                        chair_mesh=(chair.vertices, chair.faces),
-                                        collision_model=coarse)
+    motion, _ = _bench_first_draw(models, 2005, "armchair", "right_hand")
     t_on, t_off, _, part = motion.hand_contacts["right"]
     assert part == "right_armrest"
     held = (motion.time >= t_on) & (motion.time <= t_off)
-    hand = np.broadcast_to(np.eye(3), (held.sum(), 3, 3))
-    chain = [JOINT_INDEX["right_wrist"]]
-    while PARENTS[chain[-1]] >= 0:
-        chain.append(PARENTS[chain[-1]])
-    for j in reversed(chain):  # the hand's world rotation (chair frame)
-        hand = hand @ motion.local_rot[held, j]
+    # the hand's world rotation (chair frame)
+    hand = world_rotations(torch.as_tensor(motion.local_rot[held]))[
+        :, JOINT_INDEX["right_wrist"]].numpy()
     turn = np.degrees(Rotation.from_matrix(np.swapaxes(hand[:1], -1, -2) @ hand).magnitude())
     speed = np.degrees(Rotation.from_matrix(np.swapaxes(hand[:-1], -1, -2) @ hand[1:])
                        .magnitude()) / np.diff(motion.time[held])
