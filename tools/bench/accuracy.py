@@ -8,7 +8,8 @@ session and pooled over all of them: the chair's rotation, centre and worst-vert
 chamfer, the body's MPJPE, contact F1 per part (frames of all sessions pooled, with a 95 %
 bootstrap interval over the sessions: :func:`f1_intervals`; a hand has a few dozen true contact
 frames in eight sessions, so one session moves its F1 by several points), how far each
-part's distance to the chair is off where the true part is near it (:func:`distance_errors`),
+part's distance to the chair is off where the true part is near it, and its median sign (a fit
+holding a part off the chair, or into it, rather than a noisy one: :func:`distance_errors`),
 where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
 :func:`edge_errors`), how many true contacts were found at all (:func:`episode_counts`) and
 which sessions hold most of each hand's wrong frames (:func:`most_wrong`), and interaction label
@@ -99,10 +100,11 @@ class SessionAccuracy:
         time_ms: largest difference between the processed and the true frame times (ms).
         noise_mm: the processed motion's per-frame noise as the contact detector measured it
             (mm), and guard how much of its noise guards that asked for (``Contacts.guard``).
-        distance_errors: per part, |our part-to-chair distance − the true motion's| (m) in
-            the frames where the true one is under :data:`NEAR_CHAIR` (where flags are
-            decided): a measure of contact accuracy that one frame more or less does not move,
-            unlike F1 over a few dozen frames.
+        distance_errors: per part, our part-to-chair distance − the true motion's (m;
+            positive: ours farther from the chair) in the frames where the true one is under
+            :data:`NEAR_CHAIR` (where flags are decided): a measure of contact accuracy that
+            one frame more or less does not move, unlike F1 over a few dozen frames, and whose
+            sign tells a fit that holds a part off the chair from one that is only noisy.
         edges: (5,) int per part: how many of its wrong frames (false positives and false
             negatives) lie within one frame of a true contact's start or end
             (:func:`edge_errors`): a contact found a frame early or late.
@@ -149,7 +151,7 @@ class SessionAccuracy:
                 + f"; label accuracy {self.labels:.3f}; time stamps within {self.time_ms:.3f} ms"
                 f"; motion noise {self.noise_mm:.1f} mm (guard {self.guard:.2f})"
                 + ("; hand distance error near the chair (mean) " + " / ".join(
-                    f"{_cm(self.distance_errors[k])}" for k in HANDS)
+                    f"{_cm(np.abs(self.distance_errors[k]))}" for k in HANDS)
                    if self.distance_errors else ""))
 
 
@@ -170,10 +172,10 @@ def _paired(ours: np.ndarray, true: np.ndarray, dtype: type, what: str
 
 def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = NEAR_CHAIR
                     ) -> list[np.ndarray]:
-    """Per part k, ``|ours[:, k] − true[:, k]|`` (m) where ``true[:, k] < near``, from (T,K)
-    part-to-chair distances (m) of the same frames."""
+    """Per part k, ``ours[:, k] − true[:, k]`` (m; positive: ours farther) where
+    ``true[:, k] < near``, from (T,K) part-to-chair distances (m) of the same frames."""
     ours, true = _paired(ours, true, np.float64, "distance_errors: distances")
-    return [np.abs(ours[m, k] - true[m, k]) for k, m in enumerate((true < near).T)]
+    return [ours[m, k] - true[m, k] for k, m in enumerate((true < near).T)]
 
 
 def edge_errors(ours: np.ndarray, true: np.ndarray, width: int = 1) -> np.ndarray:
@@ -435,8 +437,10 @@ def main(argv: list[str] | None = None) -> int:
         tp, fp, fn = counts[k]
         err = np.concatenate([a.distance_errors[k] for a in rows if a.distance_errors]
                              + [np.zeros(0)])
-        near = (f"distance to the chair off by {_cm(err)} mean, {_cm(err, 90)} 90th percentile "
-                f"over the {len(err)} frames it is truly under {100 * NEAR_CHAIR:g} cm"
+        near = (f"distance to the chair off by {_cm(np.abs(err))} mean, "
+                f"{_cm(np.abs(err), 90)} 90th percentile, {100 * np.median(err):+.2f} cm "
+                f"median signed (+: ours farther) over the {len(err)} frames it is truly under "
+                f"{100 * NEAR_CHAIR:g} cm"
                 if len(err) else f"never truly under {100 * NEAR_CHAIR:g} cm from the chair")
         ci = (f" [{spread[k, 0]:.3f}, {spread[k, 1]:.3f}]" if np.isfinite(spread[k]).all()
               else "")
