@@ -30,7 +30,7 @@ from couch.fitting.chair import (
     register_session_chair,
 )
 from couch.fitting.clouds import PaddedClouds, pad_clouds
-from couch.fitting.contacts import ContactConfig, Contacts, detect_contacts
+from couch.fitting.contacts import FEET, ContactConfig, Contacts, detect_contacts
 from couch.fitting.fusion import FusionConfig, contact_runs, fuse_motion
 from couch.fitting.limits import joint_limit_excess, joint_limit_penalty
 from couch.fitting.metrics import (
@@ -67,6 +67,7 @@ from couch.fitting.session import (
 from couch.fitting.shape import ShapeFit, ShapeFitConfig, fit_betas_to_scan, fit_shape
 
 __all__ = [
+    "FEET",
     "FOOT_KEYPOINTS",
     "STAGES",
     "BodyFit",

@@ -77,6 +77,10 @@ __all__ = [
 ]
 
 FEET = ("left_foot", "right_foot")
+#: m: a contact point is the centre of the part's closest vertices within this of the closest
+#: (on the chair: of their nearest chair points), not the single closest, which jumps across a
+#: flat seat or sole
+CONTACT_PATCH = 0.01
 LOCOMOTION, RIGHT_HAND, LEFT_HAND, BOTH_HANDS, NO_HAND, FREE = range(6)
 
 
@@ -403,7 +407,7 @@ def side_lean(joints: np.ndarray) -> np.ndarray:
 
 
 def part_distances(verts: np.ndarray, owner: np.ndarray, chair: ChairSurface,
-                   patch: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+                   patch: float = CONTACT_PATCH) -> tuple[np.ndarray, np.ndarray]:
     """Distance of each part to the chair and the part's contact point on it.
 
     Args:
@@ -535,14 +539,20 @@ def detect_contacts(params: BodyParams, model: BodyModel,
     points = np.where(active[..., None], nearest, np.nan).astype(np.float32)
 
     # Feet on the floor: the lowest foot vertex's height; a foot on the chair is not on the
-    # floor (the chair contact is the more specific one).
+    # floor (the chair contact is the more specific one). The contact point is the centre of
+    # the sole within CONTACT_PATCH of the lowest vertex: on a flat foot the lowest vertex
+    # alone jumps between heel and toes (a mean 4.8 cm between ours and the truth's on the
+    # accuracy bench's planted feet), the patch is the sole's middle, the toes as the heel
+    # lifts.
     feet = [CONTACT_NAMES.index(f) for f in FEET]
     fd, fp = [], []
     for k in feet:
-        y = verts[:, owner == k, 1] - floor_height  # (T,n)
-        low = y.argmin(axis=1)
-        fd.append(np.maximum(y[np.arange(t), low], 0.0))
-        fp.append(verts[:, owner == k][np.arange(t), low])
+        foot = verts[:, owner == k]  # (T,n,3)
+        y = foot[..., 1] - floor_height  # (T,n)
+        low = y.min(axis=1)
+        fd.append(np.maximum(low, 0.0))
+        w = (y <= low[:, None] + CONTACT_PATCH).astype(np.float64)
+        fp.append(np.einsum("tn,tnc->tc", w, foot) / w.sum(axis=1)[:, None])
     floor_distance = np.stack(fd, 1)
     floor_points = np.stack(fp, 1)
     floor_points[..., 1] = floor_height

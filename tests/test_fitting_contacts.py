@@ -353,6 +353,33 @@ def test_standing_on_a_box_is_no_chair_contact_but_feet_on_the_floor():
     assert np.allclose(c2.points, c.points, atol=1e-5, equal_nan=True)
 
 
+def test_floor_point_of_a_flat_foot_does_not_jump_between_heel_and_toes():
+    """A standing body rocking 2° forward and back: the lowest sole vertex swaps between heel
+    and toes, the floor contact point (the sole's patch centre) stays near the middle."""
+    model = cached_model("couch-body-coarse")
+    from couch.fitting.contacts import _pose
+
+    t = 40  # one slow rock at 30 fps: feet under 0.2 m/s, on the floor throughout
+    orient = np.zeros((t, 3))
+    orient[:, 0] = np.deg2rad(2.0) * np.sin(2 * np.pi * np.arange(t) / t)
+    p = BodyParams(orient, np.zeros((t, 69)), np.zeros((t, 3)), np.zeros(10))
+    verts, _ = _pose(model, p, np.arange(model.num_vertices))
+    floor = verts[:, :, 1].min()
+    far = _box((2, floor, 2), (2.5, floor + 0.45, 2.5))
+    c = detect_contacts(p, model, *far, fps=30.0, floor_height=floor)
+    assert c.floor_active.all()
+    for k, name in enumerate(("left_foot", "right_foot")):
+        sole = verts[:, model.contact_vertices[name]]  # (T,n,3)
+        middle = sole.mean(1)  # the foot itself moves ±3 cm as the body rocks
+        lowest = sole[np.arange(t), sole[..., 1].argmin(1)] - middle
+        # the case this is about: the lowest vertex alone moves along the foot
+        assert np.ptp(lowest[:, 2]) > 0.1
+        pts = c.floor_points[:, k] - middle
+        assert np.ptp(pts[:, 2]) < 0.03 and np.ptp(pts[:, 0]) < 0.03
+        half = np.ptp(sole[0, :, 2]) / 2
+        assert np.abs(pts[:, 2]).max() < 0.5 * half
+
+
 # ----------------------------------------------------------------------- accuracy
 
 

@@ -73,6 +73,10 @@ def _assert_accuracy(a: SessionAccuracy, labels: float = 0.9) -> None:
     assert a.chamfer_cm <= 0.5
     assert a.mpjpe_cm <= 2.0
     assert a.f1[CONTACT_NAMES.index("pelvis")] >= 0.9
+    # feet on the floor, against the contact rule on the true motion (0.997-0.998 on the 30
+    # bench sessions), and where they stand (0.83 cm mean there)
+    assert a.floor[:, 0].min() >= 10 and accuracy.f1_score(a.floor).min() >= 0.95
+    assert a.floor_point_errors.mean() < 0.02
     assert a.labels >= labels
 
 
@@ -132,6 +136,11 @@ def test_accuracy_bench_pools_f1_and_checks_its_arguments():
     np.testing.assert_allclose(e[1], [0.01, -0.039])
     with pytest.raises(ValueError, match="same"):
         accuracy.distance_errors(ours, true[:2])
+    flags = np.array([[1, 0], [1, 1], [0, 1], [0, 0]], bool)
+    truth = np.array([[1, 1], [0, 1], [0, 1], [1, 0]], bool)
+    assert accuracy.contact_counts(flags, truth).tolist() == [[1, 1, 1], [2, 0, 1]]
+    with pytest.raises(ValueError, match="same"):
+        accuracy.contact_counts(flags, truth[:3])
     assert len({name for name, _ in accuracy.SESSIONS}) == len(accuracy.SESSIONS)
 
 

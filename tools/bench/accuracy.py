@@ -12,7 +12,9 @@ part's distance to the chair is off where the true part is near it, and its medi
 holding a part off the chair, or into it, rather than a noisy one: :func:`distance_errors`),
 where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
 :func:`edge_errors`), how many true contacts were found at all (:func:`episode_counts`) and
-which sessions hold most of each hand's wrong frames (:func:`most_wrong`), and interaction label
+which sessions hold most of each hand's wrong frames (:func:`most_wrong`), the feet's contacts
+with the floor (F1 against the contact rule run on the true motion and against a plain height
+threshold, and how far our planted foot point is from the true one), and interaction label
 accuracy. Everything is compared in the simulator's world after the
 rigid transform that maps our camera centres onto the true ones, so the calibration's error is
 in every number.
@@ -44,6 +46,7 @@ import torch
 import couch
 from couch.body.skeleton import CONTACT_NAMES
 from couch.fitting import (
+    FEET,
     BodyParams,
     PipelineResult,
     ProcessConfig,
@@ -59,13 +62,17 @@ from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
 
-__all__ = ["NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "distance_errors", "edge_errors",
-           "episode_counts", "f1_intervals", "most_wrong", "session_accuracy", "truth_from_ours"]
+__all__ = ["FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "contact_counts",
+           "distance_errors", "edge_errors", "episode_counts", "f1_intervals", "most_wrong",
+           "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 2.5).
 NEAR_CHAIR = 0.04
 HANDS = (CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand"))
+#: m: the plain floor truth: a true foot whose lowest point is this close to the floor is on it
+#: (the chair truth's 2 cm, with no speed or duration rule)
+FLOOR_PLAIN = 0.02
 
 #: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x;
 #: seeds whose subject and chair the simulator draws within a few tries.
@@ -111,6 +118,16 @@ class SessionAccuracy:
         episodes: (5,3) int per part: true contacts (runs of true frames), those of them
             that some frame of ours overlaps, and our contacts that overlap no true frame
             (:func:`episode_counts`).
+        floor: (2,3) int per foot (left, right): true positive, false positive and false
+            negative frames of our feet-on-the-floor flags against the same contact rule
+            (``detect_contacts``: height, speed, hysteresis) run on the true motion, which
+            tells the fit's error from the rule's choices; the simulator's truth has no floor
+            contacts of its own.
+        floor_plain: (2,3) the same against a plain threshold: the true foot's lowest point
+            within :data:`FLOOR_PLAIN` of the floor, at any speed (a foot lifting off or
+            landing counts there, not in the rule).
+        floor_point_errors: (n,) m, distance of our planted foot's floor point to the true
+            one's over the frames both flag (both feet).
     """
 
     chair_deg: float
@@ -130,6 +147,10 @@ class SessionAccuracy:
         default_factory=lambda: np.zeros(len(CONTACT_NAMES), np.int64))
     episodes: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros((len(CONTACT_NAMES), 3), np.int64))
+    floor: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((2, 3), np.int64))
+    floor_plain: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros((2, 3), np.int64))
+    floor_point_errors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     @property
     def f1(self) -> np.ndarray:
@@ -148,6 +169,10 @@ class SessionAccuracy:
                 f"chamfer {self.chamfer_cm:.3f} cm; MPJPE {self.mpjpe_cm:.2f} cm; contact F1 "
                 + ", ".join(f"{n} {f:.2f} ({t} true frames)" for n, f, t in
                             zip(CONTACT_NAMES, self.f1, self.true_frames, strict=True))
+                + "; feet on the floor F1 " + " / ".join(
+                    f"{f:.2f}" for f in f1_score(self.floor))
+                + f" ({self.floor[:, 0].sum() + self.floor[:, 2].sum()} true frames, the "
+                f"point off by {_cm(self.floor_point_errors)} mean)"
                 + f"; label accuracy {self.labels:.3f}; time stamps within {self.time_ms:.3f} ms"
                 f"; motion noise {self.noise_mm:.1f} mm (guard {self.guard:.2f})"
                 + ("; hand distance error near the chair (mean) " + " / ".join(
@@ -168,6 +193,14 @@ def _paired(ours: np.ndarray, true: np.ndarray, dtype: type, what: str
     if ours.shape != true.shape or ours.ndim != 2:
         raise ValueError(f"{what} {ours.shape} and {true.shape} must be the same (T,K)")
     return ours, true
+
+
+def contact_counts(ours: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(K,3) int per part of (T,K) bool flags: true positive, false positive and false
+    negative frames of ``ours`` against ``true``."""
+    ours, true = _paired(ours, true, bool, "contact_counts: flags")
+    return np.stack([(ours & true).sum(0), (ours & ~true).sum(0), (~ours & true).sum(0)],
+                    1).astype(np.int64)
 
 
 def distance_errors(ours: np.ndarray, true: np.ndarray, near: float = NEAR_CHAIR
@@ -261,16 +294,26 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
     align = truth_from_ours(result, info)
     rows = data.quality["frame_rows"]
     errors: list[np.ndarray] = []
+    floor = floor_plain = np.zeros((2, 3), np.int64)
+    floor_points = np.zeros(0)
     if result.contacts is not None:
         # the true motion's distances as the detector measures ours (same body model, same
-        # smoothing rule: none for a motion this clean), to its chair in its world
+        # smoothing rule: none for a motion this clean), to its chair in its world, whose
+        # floor is y = 0
         true_motion = BodyParams(betas=truth.betas, global_orient=truth.global_orient[rows],
                                  body_pose=truth.body_pose[rows], transl=truth.transl[rows])
         true_chair = apply_transform(truth.object_pose, truth.object_vertices.astype(np.float64))
         model = cached_model(contact_model or ProcessConfig().contact_model)
-        true_d = detect_contacts(true_motion, model, true_chair,
-                                 truth.object_faces, fps=data.fps).distance
-        errors = distance_errors(result.contacts.distance, true_d, NEAR_CHAIR)
+        true_c = detect_contacts(true_motion, model, true_chair, truth.object_faces,
+                                 fps=data.fps)
+        ours_c = result.contacts
+        errors = distance_errors(ours_c.distance, true_c.distance, NEAR_CHAIR)
+        floor = contact_counts(ours_c.floor_active, true_c.floor_active)
+        floor_plain = contact_counts(ours_c.floor_active, true_c.floor_distance < FLOOR_PLAIN)
+        both = ours_c.floor_active & true_c.floor_active
+        floor_points = np.linalg.norm(
+            apply_transform(align, ours_c.floor_points[both].astype(np.float64))
+            - true_c.floor_points[both], axis=-1)
     true_pose = np.array(info["chair"]["world_from_scan"])
     est = align @ data.object_pose
     v = data.object_vertices.astype(np.float64)
@@ -291,8 +334,7 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         chamfer_cm=float(result.chair.chamfer * 100),
         mpjpe_cm=float(mpjpe(apply_transform(align, data.joints.astype(np.float64)),
                              truth.joints[rows]).mean() * 100),
-        contacts=np.stack([(act & true_act).sum(0), (act & ~true_act).sum(0),
-                           (~act & true_act).sum(0)], 1).astype(np.int64),
+        contacts=contact_counts(act, true_act),
         labels=float((data.interaction == truth.interaction[rows]).mean()),
         time_ms=float(np.abs(data.time - truth.time[rows]).max() * 1e3),
         noise_mm=float(result.contacts.noise * 1e3) if result.contacts else float("nan"),
@@ -300,6 +342,9 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         distance_errors=errors,
         edges=edge_errors(act, true_act),
         episodes=episode_counts(act, true_act),
+        floor=floor,
+        floor_plain=floor_plain,
+        floor_point_errors=floor_points,
     )
 
 
@@ -448,6 +493,22 @@ def main(argv: list[str] | None = None) -> int:
               f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
               f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
               f"{near}")
+    floors = np.stack([a.floor for a in rows])  # (S,2,3)
+    floor_f1 = f1_score(floors.sum(0))
+    floor_ci = f1_intervals(floors)
+    plain_counts = np.sum([a.floor_plain for a in rows], axis=0)
+    points = np.concatenate([a.floor_point_errors for a in rows])
+    for k, n in enumerate(FEET):
+        tp, fp, fn = floors.sum(0)[k]
+        ci = (f" [{floor_ci[k, 0]:.3f}, {floor_ci[k, 1]:.3f}]" if np.isfinite(floor_ci[k]).all()
+              else "")
+        ptp, pfp, pfn = plain_counts[k]
+        print(f"floor   {n:<10} F1 {floor_f1[k]:.3f}{ci} (tp/fp/fn {tp}/{fp}/{fn}) against the "
+              f"contact rule on the true motion; {f1_score(plain_counts[k]):.3f} (tp/fp/fn "
+              f"{ptp}/{pfp}/{pfn}) against the true foot within {100 * FLOOR_PLAIN:g} cm of the "
+              f"floor at any speed")
+    print(f"floor: planted foot point off by {_cm(points)} mean, {_cm(points, 90)} 90th "
+          f"percentile over the {len(points)} foot frames both flag")
     for k in HANDS:
         worst = most_wrong(ok, per_session, k)
         if worst:
