@@ -34,7 +34,11 @@ held palms resting on the chair and the band 2-2.5 cm (IMU-like / truth): left h
 perturbation; the same with the 3 cm band). Re-measured 2026-12-05 with the palm-down rule
 (``ContactConfig.palm_down``) and a second two-hand sofa sequence (20 sequences, 3010 frames):
 left hand 0.72 / 1.00, right hand 0.86 / 1.00, labels 0.993 / 0.992, each sequence 0.94 or
-more (that sofa sequence 0.35 before the rule).
+more (that sofa sequence 0.35 before the rule). Re-measured 2026-12-06 with the contact point
+as the centre of a 2 cm patch instead of 1 cm (``ContactConfig.point_patch``; the truth's
+point stays its single closest, so a wider patch is farther from it by construction): median
+hand point error 0.88 / 0.83 cm on the truth motion (0.64 / 0.48 with 1 cm), 1.92 / 1.62 on
+the IMU-like one (1.26 / 1.43), pelvis 11.1 / 11.3 cm either way.
 """
 
 from __future__ import annotations
@@ -450,4 +454,5 @@ def test_accuracy_against_simulator_truth(motions, noisy):
     assert min(r["per_sequence"].values()) >= 0.9, r["per_sequence"]
     for hand in ("left_hand", "right_hand"):
         assert r["parts"][hand][2] >= (0.95 if not noisy else 0.65)
-        assert r["point"][hand] <= 0.02
+        # from the truth's single closest point; ours is a 2 cm patch's centre (docstring)
+        assert r["point"][hand] <= (0.015 if not noisy else 0.025)

@@ -74,9 +74,12 @@ def _assert_accuracy(a: SessionAccuracy, labels: float = 0.9) -> None:
     assert a.mpjpe_cm <= 2.0
     assert a.f1[CONTACT_NAMES.index("pelvis")] >= 0.9
     # feet on the floor, against the contact rule on the true motion (0.997-0.998 on the 30
-    # bench sessions), and where they stand (0.83 cm mean there)
+    # bench sessions), and where they stand (0.70 cm mean there)
     assert a.floor[:, 0].min() >= 10 and accuracy.f1_score(a.floor).min() >= 0.95
     assert a.floor_point_errors.mean() < 0.02
+    # the seated pelvis's point on the seat against the same rule's on the true motion (1.31
+    # cm mean on the bench, 3.0 in its worst session; up to 6.3 with a 1 cm patch)
+    assert a.point_errors[CONTACT_NAMES.index("pelvis")].mean() < 0.04
     assert a.labels >= labels
 
 

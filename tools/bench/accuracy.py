@@ -12,10 +12,11 @@ part's distance to the chair is off where the true part is near it, and its medi
 holding a part off the chair, or into it, rather than a noisy one: :func:`distance_errors`),
 where the wrong contact frames lie (within a frame of a true contact's start or end, or not:
 :func:`edge_errors`), how many true contacts were found at all (:func:`episode_counts`) and
-which sessions hold most of each hand's wrong frames (:func:`most_wrong`), the feet's contacts
-with the floor (F1 against the contact rule run on the true motion and against a plain height
-threshold, and how far our planted foot point is from the true one), and interaction label
-accuracy. Everything is compared in the simulator's world after the
+which sessions hold most of each hand's wrong frames (:func:`most_wrong`), how far each
+part's contact point on the chair is from the one the same contact rule puts on the true
+motion, the feet's contacts with the floor (F1 against that rule on the true motion and
+against a plain height threshold, and how far our planted foot point is from the true one),
+and interaction label accuracy. Everything is compared in the simulator's world after the
 rigid transform that maps our camera centres onto the true ones, so the calibration's error is
 in every number.
 
@@ -48,6 +49,7 @@ from couch.body.skeleton import CONTACT_NAMES
 from couch.fitting import (
     FEET,
     BodyParams,
+    ContactConfig,
     PipelineResult,
     ProcessConfig,
     cached_model,
@@ -128,6 +130,10 @@ class SessionAccuracy:
             landing counts there, not in the rule).
         floor_point_errors: (n,) m, distance of our planted foot's floor point to the true
             one's over the frames both flag (both feet).
+        point_errors: per part, (n,) m, distance of our contact point on the chair to the one
+            the contact rule puts on the true motion, over the frames both flag (the
+            simulator's own points are each part's single closest chair point, which jumps
+            across a seat; the rule's are patch centres, as ours).
     """
 
     chair_deg: float
@@ -151,6 +157,7 @@ class SessionAccuracy:
     floor_plain: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros((2, 3), np.int64))
     floor_point_errors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    point_errors: list[np.ndarray] = dataclasses.field(default_factory=list)
 
     @property
     def f1(self) -> np.ndarray:
@@ -169,6 +176,9 @@ class SessionAccuracy:
                 f"chamfer {self.chamfer_cm:.3f} cm; MPJPE {self.mpjpe_cm:.2f} cm; contact F1 "
                 + ", ".join(f"{n} {f:.2f} ({t} true frames)" for n, f, t in
                             zip(CONTACT_NAMES, self.f1, self.true_frames, strict=True))
+                + ("; contact points off by " + " / ".join(
+                    _cm(e) for e in self.point_errors[:3]) + " (pelvis / hands, mean)"
+                   if self.point_errors else "")
                 + "; feet on the floor F1 " + " / ".join(
                     f"{f:.2f}" for f in f1_score(self.floor))
                 + f" ({self.floor[:, 0].sum() + self.floor[:, 2].sum()} true frames, the "
@@ -285,17 +295,20 @@ def truth_from_ours(result: PipelineResult, info: dict[str, Any]) -> np.ndarray:
 
 
 def session_accuracy(result: PipelineResult, truth: ProcessedSession,
-                     info: dict[str, Any], contact_model: str | None = None
-                     ) -> SessionAccuracy:
+                     info: dict[str, Any], contact_model: str | None = None,
+                     contacts: ContactConfig | None = None) -> SessionAccuracy:
     """The issue's end-to-end numbers of one processed session against the simulator's truth
     (``truth``: its ground_truth.h5; ``info``: its truth.json; ``contact_model``: the body
-    model the run measured contacts on, ``ProcessConfig.contact_model``; None: its default)."""
+    model the run measured contacts on, ``ProcessConfig.contact_model``; ``contacts``: the
+    run's contact rule, ``ProcessConfig.contacts``, which is also run on the true motion;
+    None: their defaults)."""
     data = read_processed(result.processed)
     align = truth_from_ours(result, info)
     rows = data.quality["frame_rows"]
     errors: list[np.ndarray] = []
     floor = floor_plain = np.zeros((2, 3), np.int64)
     floor_points = np.zeros(0)
+    point_errors: list[np.ndarray] = []
     if result.contacts is not None:
         # the true motion's distances as the detector measures ours (same body model, same
         # smoothing rule: none for a motion this clean), to its chair in its world, whose
@@ -305,15 +318,18 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         true_chair = apply_transform(truth.object_pose, truth.object_vertices.astype(np.float64))
         model = cached_model(contact_model or ProcessConfig().contact_model)
         true_c = detect_contacts(true_motion, model, true_chair, truth.object_faces,
-                                 fps=data.fps)
+                                 fps=data.fps, config=contacts)
         ours_c = result.contacts
         errors = distance_errors(ours_c.distance, true_c.distance, NEAR_CHAIR)
         floor = contact_counts(ours_c.floor_active, true_c.floor_active)
         floor_plain = contact_counts(ours_c.floor_active, true_c.floor_distance < FLOOR_PLAIN)
         both = ours_c.floor_active & true_c.floor_active
-        floor_points = np.linalg.norm(
-            apply_transform(align, ours_c.floor_points[both].astype(np.float64))
-            - true_c.floor_points[both], axis=-1)
+        floor_points = _point_errors(align, ours_c.floor_points[both],
+                                     true_c.floor_points[both])
+        both = ours_c.active & true_c.active
+        point_errors = [_point_errors(align, ours_c.points[both[:, k], k],
+                                      true_c.points[both[:, k], k])
+                        for k in range(len(CONTACT_NAMES))]
     true_pose = np.array(info["chair"]["world_from_scan"])
     est = align @ data.object_pose
     v = data.object_vertices.astype(np.float64)
@@ -345,7 +361,14 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         floor=floor,
         floor_plain=floor_plain,
         floor_point_errors=floor_points,
+        point_errors=point_errors,
     )
+
+
+def _point_errors(align: np.ndarray, ours: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(n,) m between (n,3) points of ours (our world; ``align`` maps it to the truth's) and
+    the truth's."""
+    return np.linalg.norm(apply_transform(align, np.asarray(ours, np.float64)) - true, axis=-1)
 
 
 def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float,
@@ -371,7 +394,7 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
         return f"processing failed at {result.fault[0]}: {result.fault[1]}"
     return session_accuracy(result, read_processed(root / "ground_truth.h5"),
                             json.loads((root / "truth.json").read_text()),
-                            contact_model=config.contact_model)
+                            contact_model=config.contact_model, contacts=config.contacts)
 
 
 def _timed(label: str, name: str, settings: dict[str, Any], work: Path, fps: float,
@@ -487,6 +510,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"median signed (+: ours farther) over the {len(err)} frames it is truly under "
                 f"{100 * NEAR_CHAIR:g} cm"
                 if len(err) else f"never truly under {100 * NEAR_CHAIR:g} cm from the chair")
+        pts = np.concatenate([a.point_errors[k] for a in rows if a.point_errors]
+                             + [np.zeros(0)])
+        if len(pts):
+            near += (f"; contact point off by {_cm(pts)} mean, {_cm(pts, 90)} 90th percentile "
+                     f"over the {len(pts)} frames both flag")
         ci = (f" [{spread[k, 0]:.3f}, {spread[k, 1]:.3f}]" if np.isfinite(spread[k]).all()
               else "")
         print(f"contact {n:<10} F1 {pooled[k]:.3f}{ci} (tp/fp/fn {tp}/{fp}/{fn}; wrong frames "
