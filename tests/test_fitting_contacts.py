@@ -54,6 +54,7 @@ from couch.capture.segmentation import ChairModel
 from couch.fitting import BodyParams
 from couch.fitting.body import cached_model
 from couch.fitting.contacts import (
+    FEET,
     ChairSurface,
     ContactConfig,
     contact_flags,
@@ -372,7 +373,7 @@ def test_floor_point_of_a_flat_foot_does_not_jump_between_heel_and_toes():
     far = _box((2, floor, 2), (2.5, floor + 0.45, 2.5))
     c = detect_contacts(p, model, *far, fps=30.0, floor_height=floor)
     assert c.floor_active.all()
-    for k, name in enumerate(("left_foot", "right_foot")):
+    for k, name in enumerate(FEET):
         sole = verts[:, model.contact_vertices[name]]  # (T,n,3)
         middle = sole.mean(1)  # the foot itself moves ±3 cm as the body rocks
         lowest = sole[np.arange(t), sole[..., 1].argmin(1)] - middle

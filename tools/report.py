@@ -40,7 +40,7 @@ from couch.capture.azure_mkv import KinectCapture, decode_color, open_azure_mkv
 from couch.capture.session import session_files
 from couch.fitting.body import cached_model
 from couch.fitting.chair import ChairRegistration, rotation_angle_deg
-from couch.fitting.contacts import Contacts
+from couch.fitting.contacts import FEET, Contacts
 from couch.fitting.pipeline import BodyResult, PipelineResult
 from couch.fitting.session import SessionFitConfig
 from couch.runs import runs
@@ -193,7 +193,7 @@ def _contacts_summary(contacts: Contacts | None) -> dict[str, Any] | None:
         "guard": float(contacts.guard),
         "active_frames": {n: int(active[:, j].sum()) for j, n in enumerate(contacts.names)},
         "floor_frames": {n: int(floor[:, j].sum())
-                         for j, n in enumerate(("left_foot", "right_foot")[: floor.shape[1]])},
+                         for j, n in enumerate(FEET[: floor.shape[1]])},
         "labels": {INTERACTION_LABELS[k]: int(np.count_nonzero(labels == k))
                    for k in sorted(INTERACTION_LABELS)},
     }
@@ -313,7 +313,7 @@ def plot_contacts(contacts: Contacts, path: Path, time: np.ndarray | None = None
     floor = np.asarray(contacts.floor_active, bool)
     rows = [(f"{name} (chair)", active[:, j], "tab:blue") for j, name in enumerate(contacts.names)]
     rows += [(f"{name} (floor)", floor[:, j], "tab:brown")
-             for j, name in enumerate(("left_foot", "right_foot")[: floor.shape[1]])]
+             for j, name in enumerate(FEET[: floor.shape[1]])]
     fig = Figure(figsize=(10, 1.2 + 0.35 * (len(rows) + 1)))
     ax = fig.add_subplot()
     for y, (_, mask, color) in enumerate(rows):
