@@ -115,8 +115,8 @@ class ContactConfig:
     floor_leave: float = 0.05  # m: ... and to end it (speeds as for the chair)
     # A contact point is the centre of the part's vertices within this of its closest (on the
     # chair: of their nearest chair points), not the single closest, which jumps across a
-    # flat seat with a degree of pelvis tilt and between heel and toes on a flat sole. The
-    # contact distance itself: the centre of what lies within touching range once the part
+    # flat seat with a degree of pelvis tilt and between heel and toes on a flat sole. 2 cm is
+    # the contact distance: the centre of what lies within touching range once the part
     # touches. On the accuracy bench's 30 sessions 1 cm left the seated pelvis's point 2.22 cm
     # mean (5.51 cm 90th percentile) from the one the same rule puts on the true motion, 2 cm
     # 1.31 (2.96), and the hands' points as close to the simulator's planned palm points
