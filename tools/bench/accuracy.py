@@ -63,6 +63,7 @@ from couch.pool import finished, spawn_pool
 from couch.rotations import rotation_angle
 from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
+from couch.tools.sim.truth import CONTACT_DISTANCE
 
 __all__ = ["FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "contact_counts",
            "distance_errors", "edge_errors", "episode_counts", "f1_intervals", "most_wrong",
@@ -73,8 +74,8 @@ __all__ = ["FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "contact_
 NEAR_CHAIR = 0.04
 HANDS = (CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand"))
 #: m: the plain floor truth: a true foot whose lowest point is this close to the floor is on it
-#: (the chair truth's 2 cm, with no speed or duration rule)
-FLOOR_PLAIN = 0.02
+#: (the simulator's chair truth distance, with no speed or duration rule)
+FLOOR_PLAIN = CONTACT_DISTANCE
 
 #: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x;
 #: seeds whose subject and chair the simulator draws within a few tries.
@@ -188,6 +189,11 @@ class SessionAccuracy:
                 + ("; hand distance error near the chair (mean) " + " / ".join(
                     f"{_cm(np.abs(self.distance_errors[k]))}" for k in HANDS)
                    if self.distance_errors else ""))
+
+
+def _interval(ci: np.ndarray) -> str:
+    """" [low, high]" of a (2,) bootstrap interval, or "" where there is none (NaN)."""
+    return f" [{ci[0]:.3f}, {ci[1]:.3f}]" if np.isfinite(ci).all() else ""
 
 
 def _cm(errors: np.ndarray, q: float | None = None) -> str:
@@ -515,23 +521,21 @@ def main(argv: list[str] | None = None) -> int:
         if len(pts):
             near += (f"; contact point off by {_cm(pts)} mean, {_cm(pts, 90)} 90th percentile "
                      f"over the {len(pts)} frames both flag")
-        ci = (f" [{spread[k, 0]:.3f}, {spread[k, 1]:.3f}]" if np.isfinite(spread[k]).all()
-              else "")
-        print(f"contact {n:<10} F1 {pooled[k]:.3f}{ci} (tp/fp/fn {tp}/{fp}/{fn}; wrong frames "
-              f"within a frame of a true contact's start or end {edges[k]}/{fp + fn}; true "
-              f"contacts found {episodes[k, 1]}/{episodes[k, 0]}, invented {episodes[k, 2]}); "
-              f"{near}")
+        print(f"contact {n:<10} F1 {pooled[k]:.3f}{_interval(spread[k])} (tp/fp/fn "
+              f"{tp}/{fp}/{fn}; wrong frames within a frame of a true contact's start or end "
+              f"{edges[k]}/{fp + fn}; true contacts found {episodes[k, 1]}/{episodes[k, 0]}, "
+              f"invented {episodes[k, 2]}); {near}")
     floors = np.stack([a.floor for a in rows])  # (S,2,3)
-    floor_f1 = f1_score(floors.sum(0))
+    floor_counts = floors.sum(0)
+    floor_f1 = f1_score(floor_counts)
     floor_ci = f1_intervals(floors)
     plain_counts = np.sum([a.floor_plain for a in rows], axis=0)
     points = np.concatenate([a.floor_point_errors for a in rows])
     for k, n in enumerate(FEET):
-        tp, fp, fn = floors.sum(0)[k]
-        ci = (f" [{floor_ci[k, 0]:.3f}, {floor_ci[k, 1]:.3f}]" if np.isfinite(floor_ci[k]).all()
-              else "")
+        tp, fp, fn = floor_counts[k]
         ptp, pfp, pfn = plain_counts[k]
-        print(f"floor   {n:<10} F1 {floor_f1[k]:.3f}{ci} (tp/fp/fn {tp}/{fp}/{fn}) against the "
+        print(f"floor   {n:<10} F1 {floor_f1[k]:.3f}{_interval(floor_ci[k])} (tp/fp/fn "
+              f"{tp}/{fp}/{fn}) against the "
               f"contact rule on the true motion; {f1_score(plain_counts[k]):.3f} (tp/fp/fn "
               f"{ptp}/{pfp}/{pfn}) against the true foot within {100 * FLOOR_PLAIN:g} cm of the "
               f"floor at any speed")
