@@ -169,6 +169,36 @@ def test_accuracy_bench_gives_f1_an_interval_over_sessions():
         accuracy.f1_intervals(good)
 
 
+def test_accuracy_bench_scores_bone_directions_and_checks_simulator_settings():
+    """``bone_errors``: each bone's angle to the truth's, mean over frames (one bone turned by
+    a known angle in one of two frames, the rest exact); ``--sim-set`` names a simulator
+    setting, and a bad one stops the bench before any session."""
+    from couch.body import JOINT_INDEX
+
+    rng = np.random.default_rng(0)
+    true = rng.normal(size=(2, 24, 3))
+    ours = true.copy()
+    s, e = JOINT_INDEX["right_shoulder"], JOINT_INDEX["right_elbow"]
+    bone = true[1, e] - true[1, s]
+    axis = np.cross(bone, [0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(12.0)
+    # Rodrigues: the right upper arm turned by 12 deg in frame 1 (its children follow)
+    turned = (bone * np.cos(angle) + np.cross(axis, bone) * np.sin(angle)
+              + axis * (axis @ bone) * (1 - np.cos(angle)))
+    ours[1, e] = true[1, s] + turned
+    got = accuracy.bone_errors(ours, true)
+    names = [b[0] for b in accuracy.BONES]
+    assert got[names.index("right upper arm")] == pytest.approx(6.0, abs=1e-6)
+    assert got[names.index("right forearm")] > 0  # its parent end moved
+    others = [i for i, n in enumerate(names) if n not in ("right upper arm", "right forearm")]
+    np.testing.assert_allclose(got[others], 0.0, atol=1e-5)
+    with pytest.raises(SystemExit):
+        accuracy.main(["--sim-set", "no_such_setting=1"])
+    with pytest.raises(SystemExit):
+        accuracy.main(["--sim-set", "clothing=maybe"])
+
+
 def test_accuracy_bench_names_the_sessions_with_most_wrong_frames():
     """``most_wrong``: sessions ranked by a part's false positives + negatives, most first,
     ties in session order, sessions without a wrong frame left out."""

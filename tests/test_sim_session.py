@@ -292,6 +292,42 @@ def test_depth_only_contact_sheet_says_so(depth_only, tmp_path):
     assert image is not None and image.shape[0] > 4 * 200
 
 
+def test_oracle_session_is_the_same_session_without_clothes_or_suit_calibration_error(
+        depth_only, tmp_path):
+    """``clothing=False, imu_misalignment=0`` (--no-clothing --imu-misalignment 0): the same
+    draws as the session with clothes and a miscalibrated suit (motion, cameras, IMU noise,
+    the background), the cameras shown the bare body and the suit without its per-segment
+    calibration error; truth.json records both, the defaults' records stay as they were."""
+    out_d, info_d, _ = depth_only
+    cfg = dataclasses.replace(CFG, color=False, clothing=False, imu_misalignment=0.0)
+    info = simulate_session(tmp_path, cfg, progress=False)
+    assert info["config"] == {**info_d["config"], "clothing": False, "imu_misalignment": 0.0}
+    assert "clothing" not in info_d["config"] and "imu_misalignment" not in info_d["config"]
+    assert info["cameras"] == info_d["cameras"]
+    errors, errors_d = info["imu"]["errors"], info_d["imu"]["errors"]
+    assert errors_d["misalignment_deg"] > 0 and errors["misalignment_deg"] == 0
+    assert {k: v for k, v in errors.items() if k != "misalignment_deg"} == {
+        k: v for k, v in errors_d.items() if k != "misalignment_deg"}
+    truth, truth_d = (read_processed(p / "ground_truth.h5") for p in (tmp_path, out_d))
+    np.testing.assert_array_equal(truth.joints, truth_d.joints)
+    clothing, _ = load_clothing(tmp_path / CLOTHING_FILE)
+    assert not clothing.rest_offset.any() and not clothing.fold_amp.any()
+    assert clothing.hand_scale == clothing.foot_scale == 1.0
+    frames = [0, truth.num_frames - 1]
+    body = body_vertices(
+        load_body_model(cfg.model), truth.betas,
+        {"global_orient": truth.global_orient, "body_pose": truth.body_pose,
+         "transl": truth.transl}, np.array(frames))[0]
+    np.testing.assert_allclose(clothed_surface(tmp_path, frames), body, atol=1e-9)
+    mvnx, mvnx_d = ((p / "imu/recording.mvnx").read_bytes() for p in (tmp_path, out_d))
+    assert mvnx != mvnx_d  # the suit reports other segment orientations
+    manifest = json.loads((out_d / "session.json").read_text())
+    dev = manifest["kinect"][0]
+    empty, empty_d = (open_azure_mkv(p / dev["background"]) for p in (tmp_path, out_d))
+    for x, y in zip(list(empty), list(empty_d), strict=True):  # nobody there: the same room
+        np.testing.assert_array_equal(x.depth_mm, y.depth_mm)
+
+
 def test_no_color_needs_mkv_without_masks(tmp_path, capsys):
     from couch.tools.sim.session import main
 

@@ -16,14 +16,17 @@ which sessions hold most of each hand's wrong frames (:func:`most_wrong`), how f
 part's contact point on the chair is from the one the same contact rule puts on the true
 motion, the feet's contacts with the floor (F1 against that rule on the true motion and
 against a plain height threshold, and how far our planted foot point is from the true one),
-and interaction label accuracy. Everything is compared in the simulator's world after the
-rigid transform that maps our camera centres onto the true ones, so the calibration's error is
-in every number.
+interaction label accuracy, and how far the suit's, the per-frame fits' and the fused
+motion's bones point from the truth's (:func:`bone_errors`: what the cameras correct).
+Everything is compared in the simulator's world after the rigid transform that maps our camera
+centres onto the true ones, so the calibration's error is in every number.
 
 Run: ``python -m couch.tools.bench.accuracy [-o DIR] [--sessions N] [--fps F] [--duration S]
-[--threads K] [--jobs J] [--seed-offset K [K ...]] [--set KEY=VALUE ...] [--reuse]`` (several
-offsets pool their sessions; ``--set`` changes a processing setting as ``couch-process --set``
-does, and ``--reuse`` with a kept ``-o`` folder re-runs only the stages it changes;
+[--threads K] [--jobs J] [--seed-offset K [K ...]] [--set KEY=VALUE ...] [--sim-set KEY=VALUE
+...] [--reuse]`` (several offsets pool their sessions; ``--set`` changes a processing setting as
+``couch-process --set`` does, and ``--reuse`` with a kept ``-o`` folder re-runs only the stages
+it changes; ``--sim-set`` simulates the sessions with a setting of the simulator changed, e.g.
+the oracles ``clothing=false`` and ``imu_misalignment=0``, into their own ``-o`` folder;
 ``--jobs`` runs J sessions at a time in spawned processes, the printed pooled numbers the same
 as one at a time). A session takes about 1-3 min to simulate and process at 15 fps, 8 s.
 """
@@ -45,6 +48,7 @@ import open3d as o3d
 import torch
 
 import couch
+from couch.body import JOINT_INDEX
 from couch.body.skeleton import CONTACT_NAMES
 from couch.fitting import (
     FEET,
@@ -65,9 +69,9 @@ from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
 from couch.tools.sim.truth import CONTACT_DISTANCE
 
-__all__ = ["FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "contact_counts",
-           "distance_errors", "edge_errors", "episode_counts", "f1_intervals", "most_wrong",
-           "session_accuracy", "truth_from_ours"]
+__all__ = ["BONES", "FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "bone_errors",
+           "contact_counts", "distance_errors", "edge_errors", "episode_counts", "f1_intervals",
+           "most_wrong", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 2.5).
@@ -76,6 +80,20 @@ HANDS = (CONTACT_NAMES.index("left_hand"), CONTACT_NAMES.index("right_hand"))
 #: m: the plain floor truth: a true foot whose lowest point is this close to the floor is on it
 #: (the simulator's chair truth distance, with no speed or duration rule)
 FLOOR_PLAIN = CONTACT_DISTANCE
+#: (name, parent joint, child joint): bones whose direction the suit, the per-frame fits and
+#: the fused motion are scored on: the chain that carries each hand, and the spine and neck.
+BONES: tuple[tuple[str, int, int], ...] = tuple(
+    (name, JOINT_INDEX[a], JOINT_INDEX[b]) for name, a, b in (
+        ("spine", "spine2", "spine3"), ("neck", "neck", "head"),
+        ("left collar", "left_collar", "left_shoulder"),
+        ("right collar", "right_collar", "right_shoulder"),
+        ("left upper arm", "left_shoulder", "left_elbow"),
+        ("right upper arm", "right_shoulder", "right_elbow"),
+        ("left forearm", "left_elbow", "left_wrist"),
+        ("right forearm", "right_elbow", "right_wrist"),
+        ("left hand", "left_wrist", "left_hand"), ("right hand", "right_wrist", "right_hand")))
+#: the motions :attr:`SessionAccuracy.bone_deg` scores, in its row order
+BONE_SOURCES = ("suit", "per-frame fits", "fused")
 
 #: (name, simulate_session settings): each chair kind, each interaction type, noise 0.5-1.5x;
 #: seeds whose subject and chair the simulator draws within a few tries.
@@ -135,6 +153,9 @@ class SessionAccuracy:
             the contact rule puts on the true motion, over the frames both flag (the
             simulator's own points are each part's single closest chair point, which jumps
             across a seat; the rule's are patch centres, as ours).
+        bone_deg: (3,B) degrees, each :data:`BONES` bone's direction against the truth's, mean
+            over the frames, for the aligned suit, the per-frame fits and the fused motion
+            (:data:`BONE_SOURCES`): how much of the suit's error the cameras take out.
     """
 
     chair_deg: float
@@ -159,6 +180,8 @@ class SessionAccuracy:
         default_factory=lambda: np.zeros((2, 3), np.int64))
     floor_point_errors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     point_errors: list[np.ndarray] = dataclasses.field(default_factory=list)
+    bone_deg: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.full((len(BONE_SOURCES), len(BONES)), np.nan))
 
     @property
     def f1(self) -> np.ndarray:
@@ -368,7 +391,22 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
         floor_plain=floor_plain,
         floor_point_errors=floor_points,
         point_errors=point_errors,
+        bone_deg=np.stack([bone_errors(apply_transform(align, np.asarray(j, np.float64)),
+                                       truth.joints[rows])
+                           for j in (result.body.imu_joints, result.body.fit_joints,
+                                     data.joints)]),
     )
+
+
+def bone_errors(ours: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(B,) degrees: the angle between each :data:`BONES` bone's direction in ``ours`` and in
+    ``true`` ((T,24,3) joints, one world), mean over the frames."""
+    par = [b[1] for b in BONES]
+    child = [b[2] for b in BONES]
+    a = ours[:, child] - ours[:, par]
+    b = true[:, child] - true[:, par]
+    cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean(0)
 
 
 def _point_errors(align: np.ndarray, ours: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -378,19 +416,31 @@ def _point_errors(align: np.ndarray, ours: np.ndarray, true: np.ndarray) -> np.n
 
 
 def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float,
-         overrides: tuple[str, ...] = (), reuse: bool = False) -> SessionAccuracy | str:
+         overrides: tuple[str, ...] = (), reuse: bool = False,
+         sim_overrides: tuple[str, ...] = ()) -> SessionAccuracy | str:
     """One session simulated (unless ``work`` holds it), processed (``overrides``: ``--set``
     items on the default :class:`ProcessConfig`; ``reuse``: cached stage results whose inputs
     and settings are unchanged serve, else every stage runs) and measured; a string says why
-    it could not be."""
+    it could not be. ``sim_overrides``: ``--sim-set`` items on the session's
+    :class:`~couch.tools.sim.session.SessionConfig`; a kept session simulated otherwise is not
+    measured."""
     from couch.tools.sim.session import NoPlausibleSequence, SessionConfig, simulate_session
 
     root = work / name
-    if not (root / "truth.json").exists():
+    sim = with_overrides(SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED", color=False,
+                                       charuco_poses=4, fps=fps, duration=duration,
+                                       **settings), sim_overrides)
+    if (root / "truth.json").exists():
+        kept = json.loads((root / "truth.json").read_text()).get("config", {})
+        fields = SessionConfig.__dataclass_fields__
+        other = [key for key in (item.split("=", 1)[0] for item in sim_overrides)
+                 if kept.get(key, fields[key].default) != getattr(sim, key)]
+        if other:
+            return (f"kept in {root} with other simulator settings ({', '.join(other)}); "
+                    f"give --sim-set runs their own -o folder")
+    else:
         try:
-            simulate_session(root, SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED",
-                                                 color=False, charuco_poses=4, fps=fps,
-                                                 duration=duration, **settings), progress=False)
+            simulate_session(root, sim, progress=False)
         except NoPlausibleSequence as e:
             return f"not simulated: {e}"
     config = with_overrides(ProcessConfig(), overrides)
@@ -405,12 +455,13 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
 
 def _timed(label: str, name: str, settings: dict[str, Any], work: Path, fps: float,
            duration: float, threads: int | None, overrides: tuple[str, ...] = (),
-           reuse: bool = False) -> tuple[str, SessionAccuracy | str, float]:
+           reuse: bool = False, sim_overrides: tuple[str, ...] = ()
+           ) -> tuple[str, SessionAccuracy | str, float]:
     """:func:`_one` in a worker process: (label, its result, seconds)."""
     if threads:
         torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    return (label, _one(name, settings, work, fps, duration, overrides, reuse),
+    return (label, _one(name, settings, work, fps, duration, overrides, reuse, sim_overrides),
             time.perf_counter() - t0)
 
 
@@ -433,15 +484,25 @@ def main(argv: list[str] | None = None) -> int:
                          "several offsets pool their sessions")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="process with this setting changed (repeatable; couch-process --set)")
+    ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulate with this session setting changed (repeatable; a field of "
+                         "the simulator's SessionConfig, e.g. clothing=false or "
+                         "imu_misalignment=0: oracles for what one error source costs)")
     ap.add_argument("--reuse", action="store_true",
                     help="let cached stage results whose inputs and settings are unchanged "
                          "serve (with -o: e.g. calibration and chair when only body settings "
                          "are --set); default: every stage runs")
     args = ap.parse_args(argv)
-    try:
-        with_overrides(ProcessConfig(), args.set)  # a bad key fails here, not in every job
+    from couch.tools.sim.session import SessionConfig
+
+    try:  # a bad key fails here, not in every job
+        with_overrides(ProcessConfig(), args.set)
     except ValueError as exc:
         ap.error(str(exc))
+    try:
+        with_overrides(SessionConfig(), args.sim_set)
+    except ValueError as exc:
+        ap.error(str(exc).replace("--set ", "--sim-set ", 1))
     if not 1 <= args.sessions <= len(SESSIONS):
         ap.error(f"--sessions must be in 1..{len(SESSIONS)}")
     if args.jobs < 1:
@@ -467,7 +528,8 @@ def main(argv: list[str] | None = None) -> int:
             for name, settings in SESSIONS[:args.sessions]:
                 tasks.append((f"{name}{offset:+d}" if offset else name, name,
                               dict(settings, seed=settings["seed"] + offset), work, args.fps,
-                              args.duration, args.threads, tuple(args.set), args.reuse))
+                              args.duration, args.threads, tuple(args.set), args.reuse,
+                              tuple(args.sim_set)))
         if args.jobs == 1:
             for task in tasks:
                 report(*_timed(*task))
@@ -489,6 +551,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.duration:g} s each "
           f"(torch threads {torch.get_num_threads()}, cores {os.cpu_count()})"
           + (f"; settings changed: {', '.join(args.set)}" if args.set else "")
+          + (f"; simulated with {', '.join(args.sim_set)}" if args.sim_set else "")
           + (f"; {len(failed)} failed: {', '.join(failed)}" if failed else ""))
     if not rows:
         return 1
@@ -541,6 +604,10 @@ def main(argv: list[str] | None = None) -> int:
               f"floor at any speed")
     print(f"floor: planted foot point off by {_cm(points)} mean, {_cm(points, 90)} 90th "
           f"percentile over the {len(points)} foot frames both flag")
+    bones = np.nanmean([a.bone_deg for a in rows], axis=0)  # (3,B), sessions weighted alike
+    print("bone directions off by (deg, mean over the sessions), " + " / ".join(BONE_SOURCES)
+          + ": " + ", ".join(f"{name} " + " / ".join(f"{x:.1f}" for x in bones[:, i])
+                             for i, (name, _, _) in enumerate(BONES)))
     for k in HANDS:
         worst = most_wrong(ok, per_session, k)
         if worst:

@@ -102,6 +102,14 @@ def make_clothing(model: BodyModel, betas: np.ndarray, rng: np.random.Generator)
     return Clothing(offset, fold_amp, fold_phase, fold_joint, hand_scale, foot_scale)
 
 
+def bare(clothing: Clothing) -> Clothing:
+    """The same subject undressed: no garment or folds, hands and feet at the model's size (an
+    oracle for what the clothes cost; drawn as usual first, so the random streams are kept)."""
+    return dataclasses.replace(clothing, rest_offset=np.zeros_like(clothing.rest_offset),
+                               fold_amp=np.zeros_like(clothing.fold_amp), hand_scale=1.0,
+                               foot_scale=1.0)
+
+
 def dress(clothing: Clothing, model: BodyModel, vertices: np.ndarray,
           joint_transforms: np.ndarray, body_pose: np.ndarray) -> np.ndarray:
     """Clothed surfaces of posed bodies.

@@ -31,7 +31,13 @@ from couch.capture.xbus import write_device_map
 from couch.geometry import apply_transform, invert_transform, make_transform
 from couch.schema import ProcessedSession
 from couch.tools.sim.chairs import make_room
-from couch.tools.sim.clothing import CLOTHING_FILE, clothed_vertices, make_clothing, save_clothing
+from couch.tools.sim.clothing import (
+    CLOTHING_FILE,
+    bare,
+    clothed_vertices,
+    make_clothing,
+    save_clothing,
+)
 from couch.tools.sim.ik import frame_from
 from couch.tools.sim.imu import ImuConfig, body_track_from_model, simulate_mvnx, simulate_xbus
 from couch.tools.sim.kinect import (
@@ -75,11 +81,14 @@ def depth_noise(scale: float) -> DepthNoise:
                                          "radial_std", "lateral_px", "dropout"))
 
 
-def imu_config(scale: float, clock_offset: float, drift_ppm: float) -> ImuConfig:
-    """The default IMU errors times ``scale`` (0: a perfect suit), on the given clock."""
+def imu_config(scale: float, clock_offset: float, drift_ppm: float,
+               misalignment: float = 1.0) -> ImuConfig:
+    """The default IMU errors times ``scale`` (0: a perfect suit), on the given clock, the
+    per-segment calibration error (``misalignment_deg``) times ``misalignment`` as well."""
     if scale <= 0:
         return ImuConfig.perfect(clock_offset=clock_offset, drift_ppm=drift_ppm)
     base = ImuConfig(clock_offset=clock_offset, drift_ppm=drift_ppm)
+    base = dataclasses.replace(base, misalignment_deg=base.misalignment_deg * misalignment)
     return _scaled(base, scale, (
         "heading_drift_deg_per_min", "heading_walk_deg_per_sqrt_min", "misalignment_deg",
         "tilt_noise_deg", "heading_noise_deg", "position_walk_m_per_sqrt_min",
@@ -239,6 +248,8 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                         "dropped": set(dropped.tolist()), "jitter": jitter})
 
     clothing = make_clothing(model, seq.motion.betas, rng_rig)
+    if not cfg.clothing:
+        clothing = bare(clothing)
     save_clothing(out / CLOTHING_FILE, clothing, cfg.model)
     colors = person_colors(model, rng_rig)
     rest = model(betas=seq.motion.betas[None]).vertices[0].detach().double().numpy()
@@ -408,7 +419,7 @@ def _record_imu(out: Path, cfg: SessionConfig, seq: SimulatedSequence, model: Bo
                                   params["transl"], seq.motion.betas)
     offset = cfg.clock_offset if cfg.clock_offset is not None else -float(
         rng.uniform(0.2, 1.5))
-    config = imu_config(cfg.noise, offset, cfg.drift_ppm)
+    config = imu_config(cfg.noise, offset, cfg.drift_ppm, cfg.imu_misalignment)
     state = rng.bit_generator.state
     rec, truth = simulate_mvnx(track, config, rng)
     write_mvnx(out / "recording.mvnx", rec)

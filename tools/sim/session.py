@@ -84,6 +84,10 @@ class SessionConfig:
     jpeg_quality: int = 90
     model: str = "couch-body"
     color: bool = True  # False: depth-only kinect/ and background/ recordings (mkv, no masks)
+    # Oracles (what a result would be with one error source gone; the random draws stay the
+    # same, so the session is otherwise the one the defaults give):
+    clothing: bool = True  # False: the cameras see the bare body (no garment, model-size hands)
+    imu_misalignment: float = 1.0  # scales the suit's per-segment calibration error (0: none)
 
 
 @dataclasses.dataclass
@@ -229,11 +233,13 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
 
 
 def _config_record(cfg: SessionConfig) -> dict[str, Any]:
-    """``cfg`` for truth.json. ``color`` appears only when off, so that sessions with colour
-    keep the exact bytes they had before the option existed (the committed fixture)."""
+    """``cfg`` for truth.json. ``color``, ``clothing`` and ``imu_misalignment`` appear only when
+    not at their defaults, so that sessions keep the exact bytes they had before the options
+    existed (the committed fixture)."""
     record = dataclasses.asdict(cfg)
-    if cfg.color:
-        del record["color"]
+    for key in ("color", "clothing", "imu_misalignment"):
+        if record[key] == SessionConfig.__dataclass_fields__[key].default:
+            del record[key]
     return record
 
 
@@ -340,6 +346,12 @@ def main(argv: list[str] | None = None) -> int:
                          "k4arecorder --color-mode OFF): colour is not rendered, which is most "
                          "of the time; depth is the same as with colour (mkv only; the "
                          "calibration/ captures keep colour)")
+    ap.add_argument("--no-clothing", dest="clothing", action="store_false",
+                    help="an oracle: the cameras see the bare body (no garment; hands and feet "
+                         "at the body model's size), every random draw as with clothes")
+    ap.add_argument("--imu-misalignment", type=float, default=d.imu_misalignment,
+                    help="scale of the suit's per-segment calibration error on top of --noise "
+                         "(0: an oracle suit calibrated exactly; the draws stay the same)")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--motion-only", action="store_true",
                     help="write ground-truth motion only (no rendering), --sequences of them")
