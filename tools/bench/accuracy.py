@@ -69,9 +69,9 @@ from couch.schema import ProcessedSession, read_processed
 from couch.stats import bootstrap_interval
 from couch.tools.sim.truth import CONTACT_DISTANCE
 
-__all__ = ["BONES", "FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy", "bone_errors",
-           "contact_counts", "distance_errors", "edge_errors", "episode_counts", "f1_intervals",
-           "most_wrong", "session_accuracy", "truth_from_ours"]
+__all__ = ["BONES", "BONE_SOURCES", "FLOOR_PLAIN", "NEAR_CHAIR", "SESSIONS", "SessionAccuracy",
+           "bone_errors", "contact_counts", "distance_errors", "edge_errors", "episode_counts",
+           "f1_intervals", "most_wrong", "session_accuracy", "truth_from_ours"]
 
 #: m: part-to-chair distances are compared where the true one is under this (the contact
 #: flags enter at 2 cm and leave at 2.5).
@@ -422,8 +422,8 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
     items on the default :class:`ProcessConfig`; ``reuse``: cached stage results whose inputs
     and settings are unchanged serve, else every stage runs) and measured; a string says why
     it could not be. ``sim_overrides``: ``--sim-set`` items on the session's
-    :class:`~couch.tools.sim.session.SessionConfig`; a kept session simulated otherwise is not
-    measured."""
+    :class:`~couch.tools.sim.session.SessionConfig`; a kept session simulated otherwise (in
+    those settings or the oracles') is not measured."""
     from couch.tools.sim.session import NoPlausibleSequence, SessionConfig, simulate_session
 
     root = work / name
@@ -433,8 +433,11 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
     if (root / "truth.json").exists():
         kept = json.loads((root / "truth.json").read_text()).get("config", {})
         fields = SessionConfig.__dataclass_fields__
-        other = [key for key in (item.split("=", 1)[0] for item in sim_overrides)
-                 if kept.get(key, fields[key].default) != getattr(sim, key)]
+        # what was asked, and the oracles whether asked or not (a default run in an oracle's
+        # folder would measure the oracle)
+        keys = dict.fromkeys([item.split("=", 1)[0] for item in sim_overrides]
+                             + ["clothing", "imu_misalignment"])
+        other = [key for key in keys if kept.get(key, fields[key].default) != getattr(sim, key)]
         if other:
             return (f"kept in {root} with other simulator settings ({', '.join(other)}); "
                     f"give --sim-set runs their own -o folder")
