@@ -424,7 +424,12 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
     it could not be. ``sim_overrides``: ``--sim-set`` items on the session's
     :class:`~couch.tools.sim.session.SessionConfig`; a kept session simulated otherwise (in
     those settings or the oracles') is not measured."""
-    from couch.tools.sim.session import NoPlausibleSequence, SessionConfig, simulate_session
+    from couch.tools.sim.session import (
+        ORACLES,
+        NoPlausibleSequence,
+        SessionConfig,
+        simulate_session,
+    )
 
     root = work / name
     sim = with_overrides(SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED", color=False,
@@ -436,7 +441,7 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
         # what was asked, and the oracles whether asked or not (a default run in an oracle's
         # folder would measure the oracle)
         keys = dict.fromkeys([item.split("=", 1)[0] for item in sim_overrides]
-                             + ["clothing", "imu_misalignment"])
+                             + list(ORACLES))
         other = [key for key in keys if kept.get(key, fields[key].default) != getattr(sim, key)]
         if other:
             return (f"kept in {root} with other simulator settings ({', '.join(other)}); "

@@ -90,6 +90,10 @@ class SessionConfig:
     imu_misalignment: float = 1.0  # scales the suit's per-segment calibration error (0: none)
 
 
+#: The :class:`SessionConfig` fields that take one error source away (their defaults keep it).
+ORACLES = ("clothing", "imu_misalignment")
+
+
 @dataclasses.dataclass
 class SimulatedSequence:
     """One subject on one chair: the motion (chair frame) and where the chair stands."""
@@ -237,7 +241,7 @@ def _config_record(cfg: SessionConfig) -> dict[str, Any]:
     not at their defaults, so that sessions keep the exact bytes they had before the options
     existed (the committed fixture)."""
     record = dataclasses.asdict(cfg)
-    for key in ("color", "clothing", "imu_misalignment"):
+    for key in ("color", *ORACLES):
         if record[key] == SessionConfig.__dataclass_fields__[key].default:
             del record[key]
     return record
@@ -383,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["HAND_INTERACTIONS", "SessionConfig", "SimulatedSequence",
+__all__ = ["HAND_INTERACTIONS", "ORACLES", "SessionConfig", "SimulatedSequence",
            "main", "simulate_motion_dataset", "simulate_sequence", "simulate_session"]
 
 
