@@ -63,7 +63,7 @@ import dataclasses
 import functools
 import logging
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -720,8 +720,9 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
                       empty_room: str | os.PathLike | None = None,
                       background_paths: Iterable[str | os.PathLike] = (),
                       include_session: bool = True, chair: ChairModel | None = None,
-                      config: SegmentationConfig | None = None) -> CameraSegmentation:
-    """Segment every depth frame of one camera's Azure Kinect MKV recording.
+                      config: SegmentationConfig | None = None,
+                      timestamps: Collection[int] | None = None) -> CameraSegmentation:
+    """Segment the depth frames of one camera's Azure Kinect MKV recording.
 
     Args:
         path: the recording.
@@ -739,6 +740,10 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
             calibration captures had something in front, e.g. the ChArUco board).
         chair: the registered chair, if known.
         config: thresholds.
+        timestamps: device timestamps (µs) of the captures to segment; None: every capture.
+            The background (``include_session``) and the static chair (no ``chair``) still
+            come from every usable capture's depth, and ``skipped`` lists the whole
+            recording's unusable captures; ``frames`` holds only those asked for.
 
     Raises:
         SegmentationError: the file has no DEPTH stream, no frame with valid depth, or depth
@@ -783,14 +788,22 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
         raise SegmentationError(f"{path}: depth images {usable[0][2].shape} do not match the "
                                 f"background {background.depth.shape}")
     view = _View.of(calib, world_from_depth)
-    fgs = [_foreground(d, background, view, cfg) for _, _, d in usable]
     static = None
     if chair is None and len(usable) >= cfg.static_min_frames:
+        # the static chair is what stays in the foreground over the whole recording
+        fgs = [_foreground(d, background, view, cfg) for _, _, d in usable]
         static = static_foreground(np.stack([m for m, _ in fgs]), cfg)
+        fg_of = {s: fg for (_, s, _), fg in zip(usable, fgs, strict=True)}
+    else:
+        fg_of = {}
+    asked = None if timestamps is None else {int(t) for t in timestamps}
+    wanted = usable if asked is None else [u for u in usable if u[1] in asked]
+    fgs_wanted = [fg_of[s] if s in fg_of else _foreground(d, background, view, cfg)
+                  for _, s, d in wanted]
     room_chair = None if chair is None else room_on_chair(background, calib, world_from_depth,
                                                           chair, cfg.chair_distance)
     frames = [_split(d, fg, view, chair, static, room_chair, cfg, i, s)
-              for (i, s, d), fg in zip(usable, fgs, strict=True)]
+              for (i, s, d), fg in zip(wanted, fgs_wanted, strict=True)]
     if skipped:
         log.warning("%s: skipped %d capture(s) without usable depth", path, len(skipped))
     return CameraSegmentation(serial=rec.serial or path.stem, calibration=calib,

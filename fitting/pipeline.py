@@ -161,9 +161,11 @@ class BodyResult:
         joints: (T,24,3) its joints.
         fit_joints: (T,24,3) the per-frame fits' joints; imu_joints (T,24,3): the aligned suit's.
         fit_chamfer, chamfer: (T,) metres, per-frame fit and fused motion to the clouds (NaN:
-            no points / fallback).
+            no points / fallback / not fitted).
         reliability: (T,24); fallback, imu_filled: (T,) bool; foot_contact: (T,4) bool.
-        points: (T,) person points per frame; cameras_present: (T,C) bool.
+        fitted: (T,) bool, the rows the cameras were fitted on (``fit.fit_stride``); the
+            per-frame fits' arrays are NaN on the others.
+        points: (T,) person points per frame (NaN: not fitted); cameras_present: (T,C) bool.
         camera_serials: the C cameras; frame_timestamp_us: (T,C) int64 device timestamp (µs) of
             each camera's depth frame at each row (``KinectCapture.timestamp_us``), -1: none.
         sync_time, sync_kinect_height: (N,) every frame-table row's time and the cameras' head
@@ -192,6 +194,7 @@ class BodyResult:
     fallback: np.ndarray
     imu_filled: np.ndarray
     foot_contact: np.ndarray
+    fitted: np.ndarray
     points: np.ndarray
     cameras_present: np.ndarray
     camera_serials: list[str]
@@ -418,6 +421,9 @@ def body_result(fit: SessionFit) -> BodyResult:
     c = fit.imu_clock
     st, sk, it, ih = _head_heights(ss)
     table = ss.kinect.frame_table[fit.rows]
+    fitted = np.ones(len(fit.rows), bool) if fit.fitted is None else np.asarray(fit.fitted, bool)
+    points = np.full(len(fit.rows), np.nan)
+    points[fitted] = [len(x) for x in fit.clouds]
     return BodyResult(
         time=fit.time, rows=fit.rows, fps=float(1.0 / ss.kinect.period_s),
         betas=np.asarray(fit.betas, np.float32),
@@ -428,7 +434,7 @@ def body_result(fit: SessionFit) -> BodyResult:
         imu_joints=np.asarray(fit.alignment.apply(fit.imu.joint_positions), np.float32),
         fit_chamfer=fit.fit_chamfer, chamfer=fit.chamfer, reliability=fit.reliability,
         fallback=np.asarray(fit.fit.fallback, bool), imu_filled=fit.imu_filled,
-        foot_contact=fit.foot_contact, points=np.array([len(x) for x in fit.clouds]),
+        foot_contact=fit.foot_contact, fitted=fitted, points=points,
         cameras_present=table >= 0, camera_serials=[str(t.serial) for t in ss.tracks],
         frame_timestamp_us=np.stack(
             [np.where(table[:, c] >= 0, np.asarray(t.timestamp_us)[np.maximum(table[:, c], 0)], -1)

@@ -127,6 +127,11 @@ class SessionFitConfig:
         snap_init: start the shape and per-frame fits from the aligned suit moved, frame by
             frame, onto its cloud (:func:`snap_to_clouds`) instead of where the one alignment
             of the session puts it.
+        fit_stride: fit the cameras on every ``fit_stride``-th row (and the last); the fusion
+            carries the suit's motion between them, with the bias the fits measured around
+            (those rows have reliability 0). The person clouds, fits, chamfers and the fused
+            motion's chamfer are computed on the fitted rows only, so the per-frame work
+            shrinks about ``fit_stride`` times; the fusion still runs on every row.
     """
 
     body: BodyFitConfig = dataclasses.field(default_factory=BodyFitConfig)
@@ -146,6 +151,12 @@ class SessionFitConfig:
     fuse: bool = True
     error_model: str = "couch-body"
     snap_init: bool = True
+    fit_stride: int = 1
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.fit_stride, int) and self.fit_stride >= 1):
+            raise ValueError(f"SessionFitConfig.fit_stride must be an integer >= 1, got "
+                             f"{self.fit_stride!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,7 +204,9 @@ class SessionFit:
             ``refine_clock``).
         rows: (T,) rows of ``sync.kinect.frame_table`` fitted.
         time: (T,) Kinect master-clock seconds of those rows.
-        clouds: T fused person clouds (world).
+        fitted: (T,) bool, the rows the cameras were fitted on (every row unless
+            ``SessionFitConfig.fit_stride`` > 1); K of them.
+        clouds: K fused person clouds (world), one per fitted row.
         views: the C depth cameras (:class:`~couch.fitting.metrics.CameraView`, world).
         imu: the suit's poses at ``time`` (:class:`~couch.sync.ResampledImu`, IMU world).
         imu_filled: (T,) bool, rows where the IMU had no sample (a gap) and the nearest
@@ -201,18 +214,20 @@ class SessionFit:
         alignment: IMU world → world, refined on the fitted joints.
         imu_params: the IMU pose in the world with the subject's shape (the fits' start).
         betas: (10,) the subject's shape; shape_source: ``scan`` or ``clouds``.
-        fit: the per-frame fits (:class:`~couch.fitting.body.BodyFit`).
+        fit: the per-frame fits (:class:`~couch.fitting.body.BodyFit`, T frames: a row not
+            fitted holds the suit's pose in ``params`` and NaN ``joints`` and errors).
         fit_chamfer: (T,) metres, symmetric chamfer of each per-frame fit to its cloud, the
             body surface counted where a camera could see it (in its image, not hidden by the
-            body or the chair); NaN for fallback frames.
-        reliability: (T,24) the fits' weights in the fusion.
+            body or the chair); NaN for fallback frames and rows not fitted.
+        reliability: (T,24) the fits' weights in the fusion (0 on rows not fitted).
         foot_contact: (T,4) the IMU's heel/toe contacts (``FOOT_KEYPOINTS`` order).
         fused: the fused motion (or the per-frame fit when fusion was off).
         joints: (T,24,3) world joints of ``fused`` (full model).
-        chamfer: (T,) metres, the same chamfer for ``fused`` (NaN: no points).
+        chamfer: (T,) metres, the same chamfer for ``fused`` (NaN: no points, or a row not
+            fitted).
         seconds: wall time per stage.
         warnings: what may be wrong (named by stage).
-        init_shift: (T,3) metres each frame's start was moved onto its cloud
+        init_shift: (K,3) metres each fitted row's start was moved onto its cloud
             (:func:`snap_to_clouds`; zeros with ``snap_init`` off).
     """
 
@@ -239,13 +254,17 @@ class SessionFit:
     seconds: dict[str, float]
     warnings: list[str]
     init_shift: np.ndarray | None = None
+    fitted: np.ndarray | None = None
 
     def summary(self) -> str:
         """A few lines: what was fitted and how well."""
         c = self.imu_clock.clock
+        k = len(self.rows) if self.fitted is None else int(np.count_nonzero(self.fitted))
         lines = [
-            f"{self.session}: {len(self.rows)} frames fitted "
-            f"({self.time[0]:.3f}-{self.time[-1]:.3f} s), {len(self.views)} cameras, "
+            f"{self.session}: {len(self.rows)} frames "
+            f"({self.time[0]:.3f}-{self.time[-1]:.3f} s)"
+            + ("" if k == len(self.rows) else f", the cameras fitted on {k} of them")
+            + f", {len(self.views)} cameras, "
             f"{np.mean([len(x) for x in self.clouds]):.0f} person points per frame",
             f"IMU clock: offset {c.offset_s * 1e3:+.2f} ms, drift {c.drift_ppm:+.1f} ppm; "
             f"heading {self.alignment.yaw_deg:+.1f} deg ({self.alignment.method}, residual "
@@ -256,11 +275,15 @@ class SessionFit:
             f"shape from {self.shape_source}; chamfer per-frame fit "
             f"{np.nanmean(self.fit_chamfer) * 100:.2f} cm, fused "
             f"{np.nanmean(self.chamfer) * 100:.2f} cm; {int(self.fit.fallback.sum())} "
-            f"fallback frames; mean reliability {self.reliability.mean():.2f}",
+            f"fallback frames; mean reliability {self._fitted_reliability():.2f}",
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+    def _fitted_reliability(self) -> float:
+        rel = self.reliability if self.fitted is None else self.reliability[self.fitted]
+        return float(rel.mean())
 
 
 # --------------------------------------------------------------------------- helpers
@@ -343,6 +366,39 @@ def _fill_gaps(valid: np.ndarray) -> np.ndarray:
     return np.where(rows - left <= right - rows, left, right)
 
 
+def _spread_rows(values: np.ndarray, keys: np.ndarray, t: int, fill: float | bool
+                 ) -> np.ndarray:
+    """(T,...) ``values`` (K,...) of the rows ``keys`` (indices into T), ``fill`` elsewhere."""
+    values = np.asarray(values)
+    if len(keys) == t:
+        return values
+    out = np.full((t, *values.shape[1:]), fill, dtype=values.dtype)
+    out[keys] = values
+    return out
+
+
+def _spread(fit: BodyFit, keys: np.ndarray, filler: BodyParams) -> BodyFit:
+    """``fit`` of the rows ``keys`` over all T rows of ``filler`` (T frames): a row between
+    holds ``filler``'s pose, NaN joints and errors, no points, and is not a fallback."""
+    t = filler.num_frames
+    if len(keys) == t:
+        return fit
+    params = BodyParams(*(_spread_rows(a, keys, t, 0.0) for a in (
+        fit.params.global_orient, fit.params.body_pose, fit.params.transl)), fit.params.betas)
+    between = np.ones(t, bool)
+    between[keys] = False
+    for mine, theirs in ((params.global_orient, filler.global_orient),
+                         (params.body_pose, filler.body_pose), (params.transl, filler.transl)):
+        mine[between] = theirs[between]
+    return dataclasses.replace(
+        fit, params=params, joints=_spread_rows(fit.joints, keys, t, np.nan),
+        chamfer=_spread_rows(fit.chamfer, keys, t, np.nan),
+        to_surface=_spread_rows(fit.to_surface, keys, t, np.nan),
+        to_points=_spread_rows(fit.to_points, keys, t, np.nan),
+        num_points=_spread_rows(fit.num_points, keys, t, 0),
+        fallback=_spread_rows(fit.fallback, keys, t, False))
+
+
 def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud],
               views: Sequence[CameraView], present: np.ndarray,
               occluders: Occluders | None, samples: int) -> np.ndarray:
@@ -372,12 +428,12 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                    ) -> tuple[list[FusedCloud], list[CameraView], list[str]]:
     """Person clouds at rows of the frame table.
 
-    Every camera's recording is segmented once (background from its empty-room recording when
-    the session has one, else its calibration capture and its own frames), its systematic depth
-    error measured on the floor and taken out (``cloud.depth_bias``,
-    :mod:`couch.capture.depth_bias`), then each row's frames are fused. A camera's frame is
-    found by its timestamp (the frame table indexes each camera's frame list,
-    ``tracks[c].timestamp_us``).
+    Every camera's frames at these rows are segmented (background from its empty-room
+    recording when the session has one, else its calibration capture and its own frames), its
+    systematic depth error measured on the floor of those frames and taken out
+    (``cloud.depth_bias``, :mod:`couch.capture.depth_bias`), then each row's frames are fused.
+    A camera's frame is found by its timestamp (the frame table indexes each camera's frame
+    list, ``tracks[c].timestamp_us``).
 
     Args:
         session_dir: the session.
@@ -395,8 +451,12 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
     """
     files = session_files(session_dir)
     cloud = cloud or CloudConfig()
+    rows = np.asarray(rows)
+    by_serial = {t.serial: t.timestamp_us for t in tracks}
+    track_stamps = [np.asarray(by_serial[s]) for s in kinect.serials]
     segs, poses, warnings = [], [], []
-    for serial in tqdm(kinect.serials, desc="segmentation", unit="camera", disable=not progress):
+    for c, serial in enumerate(tqdm(kinect.serials, desc="segmentation", unit="camera",
+                                    disable=not progress)):
         cam = files.camera(serial)
         if cam is None or cam.recording is None:
             raise SessionFitError(f"{files.root}: the sync stage read camera {serial} but the "
@@ -404,10 +464,12 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         pose = (extrinsics.world_from_depth(serial) if isinstance(extrinsics, Extrinsics)
                 else np.asarray(extrinsics[serial], np.float64))
         empty = empty_room_recording(files.root, serial)
+        k = kinect.frame_table[rows, c]
         seg = segment_recording(cam.recording, pose, empty_room=empty,
                                 background_paths=[p for p in (cam.calibration_capture,)
                                                   if p is not None],
-                                chair=chair, config=segmentation)
+                                chair=chair, config=segmentation,
+                                timestamps=track_stamps[c][k[k >= 0]])
         if seg.skipped:
             warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
                             f"depth skipped")
@@ -416,10 +478,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
     _, fixes, unmeasured = depth_correctors(segs, kinect.serials, cloud)
     warnings += unmeasured
     stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
-    by_serial = {t.serial: t.timestamp_us for t in tracks}
-    track_stamps = [by_serial[s] for s in kinect.serials]
     clouds = []
-    for r in tqdm(np.asarray(rows), desc="clouds", unit="frame", disable=not progress):
+    for r in tqdm(rows, desc="clouds", unit="frame", disable=not progress):
         depths, masks = [], []
         for c in range(len(segs)):
             k = int(kinect.frame_table[r, c])
@@ -672,9 +732,13 @@ def fit_session(session_dir: str | os.PathLike, *,
         warnings.append(f"IMU: {int(filled.sum())} frame(s) in gaps of the IMU recording take "
                         f"the nearest valid pose")
     imu = ss.resampled.take(rows[_fill_gaps(valid[rows])])
+    # the rows the cameras are fitted on (indices into rows); the last one closes the span so
+    # the fusion interpolates the suit's bias rather than extrapolating it
+    keys = np.unique(np.r_[np.arange(0, len(rows), cfg.fit_stride), len(rows) - 1])
+    imu_k = imu.take(keys)
 
     t0 = time.perf_counter()
-    clouds, views, w = session_clouds(root, ext, ss.kinect, ss.tracks, rows, chair=chair,
+    clouds, views, w = session_clouds(root, ext, ss.kinect, ss.tracks, rows[keys], chair=chair,
                                         segmentation=cfg.segmentation, cloud=cfg.cloud,
                                         progress=progress)
     warnings += [f"capture: {x}" for x in w]
@@ -686,11 +750,11 @@ def fit_session(session_dir: str | os.PathLike, *,
     coarse = cached_model(bcfg.coarse_model, bcfg.device, bcfg.dtype)
     full = cached_model(bcfg.model, bcfg.device, bcfg.dtype)
     zero = np.zeros(10, np.float32)
-    align = align_imu(clouds, imu_body_params(imu, None, zero, coarse), coarse,
+    align = align_imu(clouds, imu_body_params(imu_k, None, zero, coarse), coarse,
                       frames=cfg.align_frames, points=cfg.align_points,
                       step_deg=cfg.yaw_step_deg, seed=bcfg.seed)
-    suit = imu_body_params(imu, align, zero, coarse)  # the aligned suit, mean shape
-    shift = np.zeros((len(rows), 3))
+    suit = imu_body_params(imu_k, align, zero, coarse)  # the aligned suit, mean shape
+    shift = np.zeros((len(keys), 3))
     if cfg.snap_init:
         shift = snap_to_clouds(clouds, suit, coarse,
                                points=cfg.align_points, min_points=bcfg.min_points,
@@ -723,7 +787,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     seconds["shape"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    init = _shifted(imu_body_params(imu, align, betas, full), shift)
+    init = _shifted(imu_body_params(imu_k, align, betas, full), shift)
     # the fit's own errors see cameras as centres only; ours below know the images and chair
     fit = fit_bodies(clouds, init, cameras=cameras, config=dataclasses.replace(bcfg, errors=False),
                      progress=progress)
@@ -738,21 +802,21 @@ def fit_session(session_dir: str | os.PathLike, *,
                                     np.asarray(chair.faces)))
     measure = cached_model(cfg.error_model, bcfg.device, bcfg.dtype)
     fit_verts, _ = pose_body(measure, fit.params)
-    present = ss.kinect.frame_table[rows] >= 0
+    present = ss.kinect.frame_table[rows[keys]] >= 0
     fit_chamfer = _chamfers(fit_verts, measure.faces, clouds, views, present, occluders,
                             bcfg.error_samples)
     fit_chamfer[fit.fallback] = np.nan
     rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, measure, cfg,
                           vertices=fit_verts)
     if (rel > 0).any():
-        align = refine_alignment(fit.joints, imu.joint_positions, rel)
+        align = refine_alignment(fit.joints, imu_k.joint_positions, rel)
     else:
         warnings.append("fit: no reliable frame; the IMU alignment rests on the heading search")
     clock = ss.imu_clock
     if cfg.refine_clock and (rel.sum(1) > 0).sum() >= 10:
         joints = np.where((rel.sum(1) > 0)[:, None, None], fit.joints, np.nan)
         try:
-            clock = refine_imu(ss.kinect.time[rows], joints, ss.imu, ss.imu_clock.clock,
+            clock = refine_imu(ss.kinect.time[rows[keys]], joints, ss.imu, ss.imu_clock.clock,
                                imu_name=ss.imu_source or "IMU")
             res = resample_imu(ss.imu, clock.clock, ss.kinect.time[rows],
                                source=ss.imu_source or "IMU")
@@ -770,6 +834,10 @@ def fit_session(session_dir: str | os.PathLike, *,
     fc = (np.zeros((len(rows), 4), bool) if imu.foot_contacts is None
           else np.asarray(imu.foot_contacts, bool))
     imu_params = imu_body_params(imu, align, betas, full)
+    # rows not fitted: the suit's pose stands in for a fit the fusion gives no weight
+    fit = _spread(fit, keys, imu_params)
+    fit_chamfer = _spread_rows(fit_chamfer, keys, len(rows), np.nan)
+    rel = _spread_rows(rel, keys, len(rows), 0.0)
     if cfg.fuse:
         fused = fuse_motion(fit.params, imu_params, rel, fc, config=cfg.fusion,
                             fps=1.0 / ss.kinect.period_s)
@@ -778,8 +846,9 @@ def fit_session(session_dir: str | os.PathLike, *,
     seconds["fusion"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     joints = pose_body(full, fused)[1]
-    fused_chamfer = _chamfers(pose_body(measure, fused)[0], measure.faces, clouds, views, present,
-                              occluders, bcfg.error_samples)
+    fused_chamfer = _spread_rows(
+        _chamfers(pose_body(measure, fused.frames(keys))[0], measure.faces, clouds, views,
+                  present, occluders, bcfg.error_samples), keys, len(rows), np.nan)
     seconds["errors"] += time.perf_counter() - t0
     for m in warnings:
         log.warning("%s", m)
@@ -789,4 +858,4 @@ def fit_session(session_dir: str | os.PathLike, *,
                       shape_source=shape_source, fit=fit, reliability=rel, foot_contact=fc,
                       fit_chamfer=fit_chamfer, fused=fused, joints=joints.astype(np.float32),
                       chamfer=fused_chamfer, seconds=seconds, warnings=warnings,
-                      init_shift=shift)
+                      init_shift=shift, fitted=np.isin(np.arange(len(rows)), keys))

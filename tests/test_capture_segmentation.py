@@ -128,6 +128,26 @@ def test_person_masks_without_an_empty_room(session):
     assert ious.mean() >= 0.95 and ious.min() >= 0.95
 
 
+def test_segmenting_some_captures_gives_their_masks_unchanged(session):
+    """``timestamps``: only those captures are segmented (a body fit on every k-th frame needs
+    no more), with the same background and the same masks as when every capture is."""
+    if session["cfg"].seed != 5:
+        pytest.skip("one session is enough")
+    cam = session["info"]["cameras"][0]
+    full = session["segs"][0]
+    asked = [f.timestamp_us for f in full.frames[1::3]]
+    part = segment_recording(session["out"] / "kinect" / f"{cam['serial']}.mkv",
+                             np.asarray(cam["world_from_depth"]), chair=session["chair"],
+                             empty_room=empty_room_recording(session["out"], cam["serial"]),
+                             timestamps=asked)
+    assert [f.timestamp_us for f in part.frames] == asked and len(asked) < len(full.frames)
+    assert np.array_equal(part.background.depth, full.background.depth)
+    by_stamp = {f.timestamp_us: f for f in full.frames}
+    for f in part.frames:
+        assert np.array_equal(f.person, by_stamp[f.timestamp_us].person)
+        assert np.array_equal(f.chair, by_stamp[f.timestamp_us].chair)
+
+
 def test_masks_separate_person_and_chair(session):
     for seg in session["segs"]:
         for f in seg.frames:

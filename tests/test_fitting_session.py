@@ -267,3 +267,34 @@ def test_bad_subject_scan_is_a_clear_error(sim, tmp_path):
     with pytest.raises(SessionFitError, match=r"scan\.ply"):
         fit_session(s["root"], extrinsics=s["ext"], chair=s["chair"], scan=bad,
                     config=dataclasses.replace(SessionFitConfig(), fuse=False))
+
+
+def test_fit_stride_fits_every_kth_row_and_the_suit_carries_the_rest(sim):
+    """``fit_stride=3`` on session b (15 fps): the cameras are fitted (and their clouds made) on
+    rows 0, 3, 6, ... and the last only; the per-frame arrays say so (NaN errors and joints,
+    reliability 0 between); the fused motion stays within 2 cm MPJPE and within 0.2 cm of the
+    motion fitted on every row."""
+    s = sim("b")
+    full, rows, truth = s["sf"], s["rows"], s["truth"]
+    sf = fit_session(s["root"], extrinsics=s["ext"], chair=s["chair"],
+                     config=SessionFitConfig(fit_stride=3))
+    t = len(sf.rows)
+    keys = np.unique(np.r_[np.arange(0, t, 3), t - 1])
+    assert np.array_equal(sf.rows, full.rows)
+    assert np.array_equal(np.flatnonzero(sf.fitted), keys)
+    assert len(sf.clouds) == len(keys) and sf.init_shift.shape == (len(keys), 3)
+    between = ~sf.fitted
+    assert np.isnan(sf.fit.joints[between]).all() and np.isnan(sf.fit_chamfer[between]).all()
+    assert np.isnan(sf.chamfer[between]).all() and (sf.reliability[between] == 0).all()
+    assert not sf.fit.fallback[between].any()
+    assert np.isfinite(sf.fit.joints[sf.fitted]).all() and np.isfinite(sf.joints).all()
+    # the fits on the rows both fitted see the same clouds (shape and heading from fewer rows)
+    assert abs(np.nanmean(sf.fit_chamfer[keys]) - np.nanmean(full.fit_chamfer[keys])) < 1e-3
+    e_full = mpjpe(full.joints, truth.joints[rows]).mean()
+    e = mpjpe(sf.joints, truth.joints[rows]).mean()
+    print(f"fused MPJPE every row {e_full * 100:.2f} cm, every 3rd row {e * 100:.2f} cm; "
+          f"{sf.seconds}")
+    assert e <= 0.02 and e <= e_full + 0.002
+    assert "the cameras fitted on" in sf.summary()
+    with pytest.raises(ValueError, match="fit_stride"):
+        SessionFitConfig(fit_stride=0)

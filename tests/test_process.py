@@ -393,7 +393,8 @@ def test_cli(tmp_path):
     assert (tmp_path / "o" / "report" / "index.html").is_file()
     assert not (tmp_path / "o" / "processed.h5").exists()
     for args, message in ((["--stages", "bogus"], "unknown stage"),
-                          (["--frames", "9:3"], "START < STOP")):
+                          (["--frames", "9:3"], "START < STOP"),
+                          (["--fit-stride", "0"], "--fit-stride must be >= 1")):
         bad = subprocess.run([str(exe), str(FIXTURE), "-o", str(tmp_path / "o"), *args],
                              capture_output=True, text=True, timeout=600)
         assert bad.returncode == 2 and message in bad.stderr
@@ -424,6 +425,31 @@ def test_cli_set_reruns_only_the_stages_it_changes(run, tmp_path, capsys):
         before.quality["contact_distance"][:, parts] < 0.03)
     assert after.contact_active[:, parts].sum() > before.contact_active[:, parts].sum() or \
         not near.any()
+
+
+def test_cli_fit_stride_fits_the_cameras_on_every_kth_row(run, tmp_path, capsys):
+    """``--fit-stride 2``: calibration and chair from the cache, the body again with the
+    cameras fitted on every other row (and the last), the motion on every row."""
+    from couch.tools.process import main as process_main
+
+    out = tmp_path / "out"
+    shutil.copytree(run.output / "cache", out / "cache")
+    code = process_main([str(FIXTURE), "-o", str(out), "--no-report", "-q", "--fit-stride", "2"])
+    assert code == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    for stage, status in zip(STAGES, ("cached", "cached", "ran", "ran"), strict=True):
+        assert f"{stage} {status}" in printed
+    before, after = read_processed(run.processed), read_processed(out / "processed.h5")
+    t = before.num_frames
+    assert after.num_frames == t and np.isfinite(after.joints).all()
+    keys = np.unique(np.r_[np.arange(0, t, 2), t - 1])
+    between = np.ones(t, bool)
+    between[keys] = False
+    measured = [np.isfinite(d.quality["fit_chamfer"]) for d in (before, after)]
+    assert not measured[1][between].any() and (after.quality["reliability"][between] == 0).all()
+    assert np.array_equal(measured[1][keys], measured[0][keys])
+    # the same session: the motions agree to a couple of centimetres
+    assert np.abs(after.joints - before.joints).max() < 0.05
 
 
 def test_bad_arguments_raise():

@@ -8,6 +8,7 @@ write_report`) and the command line. ``couch.process`` is :func:`process`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
@@ -86,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chair-frames", type=int, default=None, metavar="N",
                     help="register the chair on N frames spread over the session (default 40; "
                          "0: every frame)")
+    ap.add_argument("--fit-stride", type=int, default=None, metavar="K",
+                    help="fit the body to the cameras on every K-th frame, the suit's motion "
+                         "carrying the frames between (default 1: every frame; K times less "
+                         "per-frame work; same as --set fit.fit_stride=K)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change one setting of the processing config (repeatable), e.g. "
                          "fit.body.clothing_margin=0.005 or contacts.enter_distance=0.025; the "
@@ -102,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.chair_frames < 0:
             ap.error("--chair-frames must be >= 0")
         config = ProcessConfig(chair_frames=args.chair_frames)
+    if args.fit_stride is not None:
+        if args.fit_stride < 1:
+            ap.error("--fit-stride must be >= 1")
+        config = dataclasses.replace(config, fit=dataclasses.replace(
+            config.fit, fit_stride=args.fit_stride))
     try:
         config = with_overrides(config, args.set)
     except ValueError as exc:

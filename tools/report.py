@@ -131,10 +131,12 @@ def _body_summary(body: BodyResult | None) -> dict[str, Any] | None:
     if body is None:
         return None
     t = len(body.time)
-    rel = np.asarray(body.reliability, np.float64)
+    fitted = np.asarray(body.fitted, bool)
+    rel = np.asarray(body.reliability, np.float64)[fitted]
     present = np.asarray(body.cameras_present, bool).reshape(t, -1)
     return {
         "frames": t,
+        "fitted_frames": int(np.count_nonzero(fitted)),  # the cameras' fits (fit.fit_stride)
         # the span the fitted rows cover: last - first time + one frame period
         "duration_s": float(body.time[-1] - body.time[0] + 1.0 / body.fps) if t else 0.0,
         "fps": body.fps,
@@ -266,15 +268,17 @@ def plot_sync(body: BodyResult, path: Path) -> Path | None:
 
 def plot_fit_error(body: BodyResult, path: Path) -> Path | None:
     """``fit_error.png``: per-frame fit and fused chamfer (cm), mean reliability and person
-    points over time."""
+    points over time, on the rows the cameras were fitted on."""
     t = np.asarray(body.time, float)
     if t.size == 0:
         return None
+    on = np.asarray(body.fitted, bool)
     fig = Figure(figsize=(10, 6))
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
-    ax1.plot(t, np.asarray(body.fit_chamfer, float) * 100, ".-", ms=3, lw=1,
+    ax1.plot(t[on], np.asarray(body.fit_chamfer, float)[on] * 100, ".-", ms=3, lw=1,
              label="per-frame fit")
-    ax1.plot(t, np.asarray(body.chamfer, float) * 100, ".-", ms=3, lw=1, label="fused motion")
+    ax1.plot(t[on], np.asarray(body.chamfer, float)[on] * 100, ".-", ms=3, lw=1,
+             label="fused motion")
     for a, n in _runs(np.asarray(body.imu_filled, bool)):
         ax1.axvspan(t[a], t[min(a + n, len(t) - 1)], color="orange", alpha=0.2, lw=0)
     fb = np.asarray(body.fallback, bool)
@@ -284,15 +288,16 @@ def plot_fit_error(body: BodyResult, path: Path) -> Path | None:
     ax1.set_title("body fit error (shaded: IMU gap filled)")
     ax1.grid(alpha=0.3)
     ax1.legend(loc="best")
-    rel = np.asarray(body.reliability, float).reshape(len(t), -1)
+    rel = np.asarray(body.reliability, float).reshape(len(t), -1)[on]
     finite = np.isfinite(rel)
     mean_rel = np.where(finite, rel, 0.0).sum(axis=1) / np.maximum(finite.sum(axis=1), 1)
-    ax2.plot(t, np.where(finite.any(axis=1), mean_rel, np.nan), "g-", label="mean reliability")
+    ax2.plot(t[on], np.where(finite.any(axis=1), mean_rel, np.nan), "g-",
+             label="mean reliability")
     ax2.set_ylim(-0.05, 1.05)
     ax2.set_ylabel("reliability")
     ax2.set_xlabel("time (s)")
     ax3 = ax2.twinx()
-    ax3.plot(t, np.asarray(body.points, float), "k:", lw=1, label="person points")
+    ax3.plot(t[on], np.asarray(body.points, float)[on], "k:", lw=1, label="person points")
     ax3.set_ylabel("points")
     ax2.legend(handles=ax2.lines + ax3.lines, loc="best")
     ax2.grid(alpha=0.3)

@@ -400,13 +400,14 @@ def session_accuracy(result: PipelineResult, truth: ProcessedSession,
 
 def bone_errors(ours: np.ndarray, true: np.ndarray) -> np.ndarray:
     """(B,) degrees: the angle between each :data:`BONES` bone's direction in ``ours`` and in
-    ``true`` ((T,24,3) joints, one world), mean over the frames."""
+    ``true`` ((T,24,3) joints, one world), mean over the frames where ``ours`` has them (the
+    per-frame fits are NaN on rows not fitted)."""
     par = [b[1] for b in BONES]
     child = [b[2] for b in BONES]
     a = ours[:, child] - ours[:, par]
     b = true[:, child] - true[:, par]
     cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean(0)
+    return np.nanmean(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), axis=0)
 
 
 def _point_errors(align: np.ndarray, ours: np.ndarray, true: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ and prints the wall time of every stage and of the steps inside it, the recordin
 over the total wall time (goal >= 1.0x real time), the CPU time, and the load average.
 
 Run: ``python -m couch.tools.bench.process [SESSION_DIR] [--duration S] [--fps F] [--threads K]
-[--no-report]``. ``--threads 1`` (or ``OMP_WAIT_POLICY=PASSIVE``) keeps torch's OpenMP threads
+[--no-report] [--set KEY=VALUE ...]`` (``--set``: ``couch-process``'s, e.g.
+``fit.fit_stride=3``). ``--threads 1`` (or ``OMP_WAIT_POLICY=PASSIVE``) keeps torch's OpenMP threads
 from spin-waiting on a machine other processes keep busy (see ``couch.tools.bench.fitting``).
 """
 
@@ -21,14 +22,17 @@ from pathlib import Path
 import torch
 
 import couch
-from couch.fitting.pipeline import STAGES
+from couch.fitting.pipeline import STAGES, ProcessConfig
+from couch.overrides import with_overrides
 from couch.schema import read_processed
 
 
-def bench(session: Path, output: Path, report: bool) -> None:
-    """Process ``session`` into ``output`` (no cache) and print the timings."""
+def bench(session: Path, output: Path, report: bool, config: ProcessConfig | None = None
+          ) -> None:
+    """Process ``session`` into ``output`` (no cache) with ``config`` (None: the default) and
+    print the timings."""
     cpu0, t0 = time.process_time(), time.perf_counter()
-    result = couch.process(session, output, force=True, report=report)
+    result = couch.process(session, output, force=True, report=report, config=config)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     if not result.ok:
         print(result.summary())
@@ -62,7 +66,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=5, help="simulator seed")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--no-report", action="store_true", help="leave the report out")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change one setting of the processing config (repeatable; "
+                         "couch-process's --set), e.g. fit.fit_stride=3")
     args = ap.parse_args(argv)
+    try:
+        config = with_overrides(ProcessConfig(), args.set)
+    except ValueError as exc:
+        ap.error(str(exc))
+    if args.set:
+        print("settings: " + ", ".join(args.set))
     if args.threads:
         torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
@@ -76,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
                   f"{cfg.cameras} cameras, {cfg.depth_mode}, depth only, seed {cfg.seed}")
             session = Path(tmp) / "session"
             simulate_session(session, cfg, progress=False)
-        bench(session, Path(tmp) / "out", not args.no_report)
+        bench(session, Path(tmp) / "out", not args.no_report, config)
 
 
 if __name__ == "__main__":
