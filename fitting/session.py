@@ -18,9 +18,10 @@
    (:func:`couch.fitting.shape.fit_betas_to_scan`), else fitted over frames of the session
    (:func:`couch.fitting.shape.fit_shape`);
 5. **per-frame fits** — :func:`couch.fitting.body.fit_bodies`, initialised from the aligned IMU
-   pose; then the alignment is refined on the fitted joints (every joint of every reliable frame,
-   so the heading is settled by the body's own orientation) and, optionally, the IMU clock on
-   the fitted joints (:func:`couch.sync.refine_imu`);
+   pose (on every ``SessionFitConfig.fit_stride``-th row: steps 2-6 run on those rows only);
+   then the alignment is refined on the fitted joints (every joint of every reliable frame, so
+   the heading is settled by the body's own orientation) and, optionally, the IMU clock on the
+   fitted joints (:func:`couch.sync.refine_imu`);
 6. **reliability** — per frame and joint (:func:`fit_reliability`): a fit counts where its
    chamfer is small and, per joint, where the body surface that faces a camera there is
    actually backed by cloud points (a limb hidden behind the chair or cut away with it is not);
