@@ -421,9 +421,8 @@ def body_result(fit: SessionFit) -> BodyResult:
     c = fit.imu_clock
     st, sk, it, ih = _head_heights(ss)
     table = ss.kinect.frame_table[fit.rows]
-    fitted = np.ones(len(fit.rows), bool) if fit.fitted is None else np.asarray(fit.fitted, bool)
     points = np.full(len(fit.rows), np.nan)
-    points[fitted] = [len(x) for x in fit.clouds]
+    points[fit.fitted] = [len(x) for x in fit.clouds]
     return BodyResult(
         time=fit.time, rows=fit.rows, fps=float(1.0 / ss.kinect.period_s),
         betas=np.asarray(fit.betas, np.float32),
@@ -434,7 +433,7 @@ def body_result(fit: SessionFit) -> BodyResult:
         imu_joints=np.asarray(fit.alignment.apply(fit.imu.joint_positions), np.float32),
         fit_chamfer=fit.fit_chamfer, chamfer=fit.chamfer, reliability=fit.reliability,
         fallback=np.asarray(fit.fit.fallback, bool), imu_filled=fit.imu_filled,
-        foot_contact=fit.foot_contact, fitted=fitted, points=points,
+        foot_contact=fit.foot_contact, fitted=fit.fitted, points=points,
         cameras_present=table >= 0, camera_serials=[str(t.serial) for t in ss.tracks],
         frame_timestamp_us=np.stack(
             [np.where(table[:, c] >= 0, np.asarray(t.timestamp_us)[np.maximum(table[:, c], 0)], -1)

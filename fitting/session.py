@@ -237,6 +237,7 @@ class SessionFit:
     imu_clock: ClockEstimate
     rows: np.ndarray
     time: np.ndarray
+    fitted: np.ndarray
     clouds: list[FusedCloud]
     views: list[CameraView]
     imu: ResampledImu
@@ -255,12 +256,11 @@ class SessionFit:
     seconds: dict[str, float]
     warnings: list[str]
     init_shift: np.ndarray | None = None
-    fitted: np.ndarray | None = None
 
     def summary(self) -> str:
         """A few lines: what was fitted and how well."""
         c = self.imu_clock.clock
-        k = len(self.rows) if self.fitted is None else int(np.count_nonzero(self.fitted))
+        k = int(np.count_nonzero(self.fitted))
         lines = [
             f"{self.session}: {len(self.rows)} frames "
             f"({self.time[0]:.3f}-{self.time[-1]:.3f} s)"
@@ -276,15 +276,11 @@ class SessionFit:
             f"shape from {self.shape_source}; chamfer per-frame fit "
             f"{np.nanmean(self.fit_chamfer) * 100:.2f} cm, fused "
             f"{np.nanmean(self.chamfer) * 100:.2f} cm; {int(self.fit.fallback.sum())} "
-            f"fallback frames; mean reliability {self._fitted_reliability():.2f}",
+            f"fallback frames; mean reliability {self.reliability[self.fitted].mean():.2f}",
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
-
-    def _fitted_reliability(self) -> float:
-        rel = self.reliability if self.fitted is None else self.reliability[self.fitted]
-        return float(rel.mean())
 
 
 # --------------------------------------------------------------------------- helpers
@@ -384,13 +380,15 @@ def _spread(fit: BodyFit, keys: np.ndarray, filler: BodyParams) -> BodyFit:
     t = filler.num_frames
     if len(keys) == t:
         return fit
-    params = BodyParams(*(_spread_rows(a, keys, t, 0.0) for a in (
-        fit.params.global_orient, fit.params.body_pose, fit.params.transl)), fit.params.betas)
-    between = np.ones(t, bool)
-    between[keys] = False
-    for mine, theirs in ((params.global_orient, filler.global_orient),
-                         (params.body_pose, filler.body_pose), (params.transl, filler.transl)):
-        mine[between] = theirs[between]
+
+    def put(theirs: np.ndarray, mine: np.ndarray) -> np.ndarray:
+        out = np.array(theirs, dtype=mine.dtype)
+        out[keys] = mine
+        return out
+
+    params = BodyParams(put(filler.global_orient, fit.params.global_orient),
+                        put(filler.body_pose, fit.params.body_pose),
+                        put(filler.transl, fit.params.transl), fit.params.betas)
     return dataclasses.replace(
         fit, params=params, joints=_spread_rows(fit.joints, keys, t, np.nan),
         chamfer=_spread_rows(fit.chamfer, keys, t, np.nan),
@@ -854,9 +852,10 @@ def fit_session(session_dir: str | os.PathLike, *,
     for m in warnings:
         log.warning("%s", m)
     return SessionFit(session=root, sync=ss, imu_clock=clock, rows=rows,
-                      time=ss.kinect.time[rows], clouds=clouds, views=views, imu=imu,
+                      time=ss.kinect.time[rows], fitted=np.isin(np.arange(len(rows)), keys),
+                      clouds=clouds, views=views, imu=imu,
                       imu_filled=filled, alignment=align, imu_params=imu_params, betas=betas,
                       shape_source=shape_source, fit=fit, reliability=rel, foot_contact=fc,
                       fit_chamfer=fit_chamfer, fused=fused, joints=joints.astype(np.float32),
                       chamfer=fused_chamfer, seconds=seconds, warnings=warnings,
-                      init_shift=shift, fitted=np.isin(np.arange(len(rows)), keys))
+                      init_shift=shift)
