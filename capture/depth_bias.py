@@ -27,7 +27,8 @@ from .pointcloud import CloudConfig
 from .registration import pixel_rays
 from .segmentation import CameraSegmentation
 
-__all__ = ["DepthBias", "depth_correctors", "floor_depth_bias", "recording_depth_bias"]
+__all__ = ["DepthBias", "depth_correctors", "floor_depth_bias", "recording_depth_bias",
+           "unmeasured_warnings"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +155,11 @@ def depth_correctors(segmentations: Sequence[CameraSegmentation], serials: Seque
               for s in segmentations]
     fixes = [_as_recorded if b is None else b.corrector(s.calibration)
              for b, s in zip(biases, segmentations, strict=True)]
-    warnings = [f"camera {serial}: too little floor in view to measure its depth error; its "
-                f"depth is used as recorded"
-                for serial, b in zip(serials, biases, strict=True) if b is None]
-    return biases, fixes, warnings
+    return biases, fixes, unmeasured_warnings(serials, biases)
+
+
+def unmeasured_warnings(serials: Sequence[str], biases: Sequence[DepthBias | None]) -> list[str]:
+    """A warning for each camera whose depth error could not be measured (``None``)."""
+    return [f"camera {serial}: too little floor in view to measure its depth error; its "
+            f"depth is used as recorded"
+            for serial, b in zip(serials, biases, strict=True) if b is None]

@@ -522,6 +522,10 @@ class ChairModel:
         q = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
         return self._scene.compute_distance(q).numpy()
 
+    def __reduce__(self) -> tuple[type, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        # the ray-casting scene does not pickle: a worker process rebuilds it from the mesh
+        return (ChairModel, (self.vertices, self.faces, self.world_from_object))
+
 
 def chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, calib: KinectCalibration,
                  world_from_depth: np.ndarray, chair: ChairModel, distance: float,

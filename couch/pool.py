@@ -2,38 +2,56 @@
 
 Workers are *spawned*, not forked: torch's and open3d's thread pools do not survive a fork. Each
 worker sets its torch thread count once (one thread by default, so that N workers on N cores do
-not fight over them). :func:`finished` walks the futures as they complete and cancels those not
-yet started when the caller stops early (a failed task or Ctrl-C), so an error does not wait for
-the rest of the queue.
+not fight over them) and may import modules as it starts (``preload``: a worker's first
+import of torch and open3d takes seconds). :func:`finished` walks the futures as they complete
+and cancels those not yet started when the caller stops early (a failed task or Ctrl-C), so an
+error does not wait for the rest of the queue. :func:`pool_map` is the stages' way to run
+independent tasks on a pool if they are given one (:data:`Pool`), in their own process if not,
+with the same results.
 """
 
 from __future__ import annotations
 
+import importlib
 import multiprocessing
-from collections.abc import Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
-from typing import TypeVar
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from typing import Any, TypeVar
 
-__all__ = ["finished", "spawn_pool"]
+__all__ = ["Pool", "finished", "pool_map", "spawn_pool"]
 
 T = TypeVar("T")
 
-
-def _set_threads(threads: int) -> None:
-    import torch
-
-    torch.set_num_threads(threads)
+Pool = Executor | None
+"""Where a stage's independent tasks run: an executor (e.g. :func:`spawn_pool`), or None: one
+after another in this process."""
 
 
-def spawn_pool(workers: int, *, torch_threads: int | None = 1) -> ProcessPoolExecutor:
+def _set_threads(threads: int | None, preload: tuple[str, ...] = ()) -> None:
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    for name in preload:
+        importlib.import_module(name)
+
+
+def spawn_pool(workers: int, *, torch_threads: int | None = 1, preload: Sequence[str] = (),
+               start: bool = False) -> ProcessPoolExecutor:
     """A pool of ``workers`` spawned processes, each with ``torch_threads`` torch threads
-    (None: leave torch's default, e.g. when each task sets its own)."""
+    (None: leave torch's default, e.g. when each task sets its own), each importing the
+    modules ``preload`` as it starts. ``start``: start every worker now (else each starts
+    with the task that needs it), so that their imports run while the caller works."""
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    keep = torch_threads is None
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=None if keep else _set_threads,
-                               initargs=() if keep else (torch_threads,))
+    pool = ProcessPoolExecutor(max_workers=workers,
+                               mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_set_threads,
+                               initargs=(torch_threads, tuple(preload)))
+    if start:
+        for _ in range(workers):  # a spawned pool starts a process per task it is given
+            pool.submit(int)
+    return pool
 
 
 def finished(futures: Iterable[Future[T]]) -> Iterator[Future[T]]:
@@ -46,3 +64,29 @@ def finished(futures: Iterable[Future[T]]) -> Iterator[Future[T]]:
     finally:
         for fut in futures:
             fut.cancel()  # a no-op for the finished and the running ones
+
+
+def pool_map(pool: Pool, fn: Callable[..., T],
+             tasks: Iterable[tuple[Any, ...] | dict[str, Any]], *,
+             desc: str | None = None, unit: str = "task") -> list[T]:
+    """``[fn(*args) for args in tasks]`` (``fn(**args)`` for a dict), on ``pool`` when one is
+    given (``fn`` and the arguments must then pickle: a module-level function, plain data), in
+    this process otherwise. Results come in the order of ``tasks``; the first task to fail
+    raises its exception and the tasks not yet started are cancelled. ``desc``: a progress bar
+    over the tasks as they finish."""
+    from tqdm import tqdm
+
+    tasks = list(tasks)
+    with tqdm(total=len(tasks), desc=desc, unit=unit, disable=desc is None) as bar:
+        if pool is None or len(tasks) < 2:
+            out = []
+            for args in tasks:
+                out.append(fn(**args) if isinstance(args, dict) else fn(*args))
+                bar.update()
+            return out
+        futures = [pool.submit(fn, **args) if isinstance(args, dict) else pool.submit(fn, *args)
+                   for args in tasks]
+        for fut in finished(futures):
+            fut.result()  # the first failure raises here, as it comes
+            bar.update()
+        return [fut.result() for fut in futures]

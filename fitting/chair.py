@@ -68,8 +68,9 @@ from tqdm.auto import tqdm
 
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics
-from couch.capture.depth_bias import DepthBias, depth_correctors
-from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
+from couch.capture.camera_clouds import camera_clouds, join_cameras
+from couch.capture.depth_bias import DepthBias, unmeasured_warnings
+from couch.capture.pointcloud import CloudConfig, FusedCloud
 from couch.capture.segmentation import (
     CameraSegmentation,
     FrameSegmentation,
@@ -77,11 +78,11 @@ from couch.capture.segmentation import (
     camera_points,
     depth_edges,
     empty_room_recording,
-    segment_recording,
 )
 from couch.capture.session import session_files
 from couch.fitting.metrics import CameraView, surface_distances
 from couch.geometry import apply_transform, invert_transform, sample_surface
+from couch.pool import Pool, pool_map
 from couch.rotations import rotation_angle
 
 __all__ = [
@@ -434,12 +435,14 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                  kinect: object | None = None, tracks: Sequence[object] | None = None,
                  config: ChairConfig | None = None,
                  segmentation: SegmentationConfig | None = None,
-                 cloud: CloudConfig | None = None, progress: bool = False) -> ChairClouds:
+                 cloud: CloudConfig | None = None, progress: bool = False,
+                 pool: Pool = None) -> ChairClouds:
     """Clouds of what may be the chair, per frame (see the module doc, step 1).
 
     Mirrors :func:`couch.fitting.session.session_clouds`: every camera's recording is
     segmented once (background from its empty-room recording when there is one, else its
-    calibration capture and its own frames) and each frame's masks fused over cameras.
+    calibration capture and its own frames; its depth error measured over all its frames) and
+    each frame's masked points joined over cameras.
 
     Args:
         session_dir: the session.
@@ -454,6 +457,10 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
         config: the chair stage's knobs (person growth, floor height).
         segmentation, cloud: capture-stage configs.
         progress: progress bars.
+        pool: where the cameras' recordings are segmented and lifted to points
+            (:func:`couch.capture.camera_clouds.camera_clouds`, one camera per task,
+            :func:`couch.pool.spawn_pool`); None: one after another here. The clouds are the
+            same either way.
 
     Raises:
         ChairRegistrationError: no camera has a recording or extrinsics.
@@ -465,9 +472,15 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
                else [c.serial for c in files.cameras if c.recording is not None])
     if not serials:
         raise ChairRegistrationError(f"{files.root}: the session has no camera recordings")
-    segs: list[CameraSegmentation] = []
-    warnings: list[str] = []
-    for serial in tqdm(serials, desc="chair segmentation", unit="camera", disable=not progress):
+    cloud = cloud or CloudConfig()
+    sel = None
+    if kinect is not None:
+        table = kinect.frame_table  # type: ignore[attr-defined]
+        by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
+        sel = (np.arange(0, len(table), max(1, int(step))) if frames is None
+               else np.asarray(frames, int))
+    tasks = []
+    for c, serial in enumerate(serials):
         cam = files.camera(serial)
         if cam is None or cam.recording is None:
             raise ChairRegistrationError(f"{files.root}: no recording for camera {serial}")
@@ -477,56 +490,53 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
         except KeyError:
             raise ChairRegistrationError(f"{files.root}: no extrinsics for camera "
                                          f"{serial}") from None
-        seg = segment_recording(cam.recording, pose,
-                                empty_room=empty_room_recording(files.root, serial),
-                                background_paths=[p for p in (cam.calibration_capture,)
-                                                  if p is not None], config=seg_cfg)
-        if seg.skipped:
-            warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
-                            f"depth skipped")
-        segs.append(seg)
-    biases, fixes, unmeasured = depth_correctors(segs, serials, cloud or CloudConfig(),
-                                                 cfg.person_dilate_px)
-    warnings += unmeasured
-    if kinect is not None:
-        stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
-        by_serial = {t.serial: t.timestamp_us for t in tracks or ()}  # type: ignore[attr-defined]
-        table = kinect.frame_table  # type: ignore[attr-defined]
-        count = len(table)
-    else:
-        count = min(len(s.frames) for s in segs)
-    sel = np.arange(0, count, max(1, int(step))) if frames is None else np.asarray(frames, int)
+        task = dict(recording=cam.recording, world_from_depth=pose,
+                    empty_room=empty_room_recording(files.root, serial),
+                    background_paths=[p for p in (cam.calibration_capture,) if p is not None],
+                    segmentation=seg_cfg, cloud=cloud,
+                    mask=functools.partial(scene_mask, config=cfg),
+                    # the static chair and the depth error come from every frame
+                    bias_on_all=True, person_dilate_px=cfg.person_dilate_px, far=True)
+        if sel is not None:
+            k = table[sel, c]
+            task["timestamps"] = np.asarray(by_serial[serial])[k[k >= 0]]
+        elif frames is not None:  # frame k of every camera: its k-th usable frame
+            task["indices"] = np.asarray(frames, int)
+        else:
+            task["step"] = max(1, int(step))
+        tasks.append(task)
+    parts = pool_map(pool, camera_clouds, tasks,
+                     desc="chair segmentation" if progress else None, unit="camera")
+    warnings = [f"{p.recording}: {p.skipped} capture(s) without usable depth skipped"
+                for p in parts if p.skipped]
+    if cloud.depth_bias:
+        warnings += unmeasured_warnings(serials, [p.depth_bias for p in parts])
     clouds, times = [], []
-    # per camera the farthest depth it measured in any of these frames: a surface point up to
-    # ``seen_tolerance`` behind it was in view at least once (not always behind the person)
-    far = [np.zeros(s.background.depth.shape, np.uint16) for s in segs]
-    for r in tqdm(sel, desc="chair clouds", unit="frame", disable=not progress):
-        depths, masks = [], []
-        for c, seg in enumerate(segs):
-            if kinect is not None:
-                k = int(table[r, c])
-                f = (stamps[c].get(int(by_serial[serials[c]][k])) if k >= 0 else None)
-            else:
-                f = seg.frames[int(r)]
-            depth = None if f is None else fixes[c](f.depth_mm)
-            depths.append(depth)
-            masks.append(None if f is None else scene_mask(f, seg, cfg, depth))
-            if depth is not None:
-                np.maximum(far[c], depth, out=far[c])
-        t = (float(kinect.time[r]) if kinect is not None  # type: ignore[attr-defined]
-             else segs[0].frames[int(r)].timestamp_us * 1e-6)
-        times.append(t)
-        clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs],
-                                  [s.world_from_depth for s in segs], time=t, config=cloud))
+    if sel is not None:
+        for r in sel:
+            t = float(kinect.time[r])  # type: ignore[attr-defined]
+            ks = [int(k) for k in table[r]]
+            clouds.append(join_cameras(parts, [p.frame(int(by_serial[serials[c]][k])) if k >= 0
+                                               else None for c, (p, k)
+                                               in enumerate(zip(parts, ks, strict=True))], t))
+            times.append(t)
+    else:
+        count = min(len(p.timestamps) for p in parts)
+        sel = (np.arange(0, count * max(1, int(step)), max(1, int(step))) if frames is None
+               else np.asarray(frames, int))
+        for j in range(count):
+            t = parts[0].timestamps[j] * 1e-6
+            clouds.append(join_cameras(parts, [j] * len(parts), t))
+            times.append(t)
     # CameraView hides points behind its background by more than -margin: here the farthest
     # measurement (0 where never valid: never seen), so a chair surface the person covered in
     # every frame does not count as missed
-    views = [CameraView(s.world_from_depth, s.calibration.depth,
-                        fd.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
-                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
-                        max_incidence_deg=80.0) for s, fd in zip(segs, far, strict=True)]
-    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings, biases,
-                       list(serials))
+    views = [CameraView(p.world_from_depth, p.calibration.depth,
+                        p.far.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
+                        depth_range=DEPTH_RANGE_M.get(p.calibration.depth_mode),
+                        max_incidence_deg=80.0) for p in parts]
+    return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings,
+                       [p.depth_bias for p in parts], list(serials))
 
 
 # --------------------------------------------------------------------------- registration
@@ -705,6 +715,7 @@ def _refined(cloud: FusedCloud, scan: ChairScan,
     stages = cfg.icp_distances[1:] if screen else cfg.icp_distances
     found = [track_frame(cloud, scan, p, cfg, scene, target, stages) for p in starts]
     return _ranked([dataclasses.replace(r, method="global") for r in found if r.pose is not None])
+
 
 
 def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | None = None,
@@ -1246,15 +1257,16 @@ def register_session_chair(session_dir: str | os.PathLike,
                            frames: Sequence[int] | np.ndarray | None = None, step: int = 1,
                            config: ChairConfig | None = None,
                            segmentation: SegmentationConfig | None = None,
-                           cloud: CloudConfig | None = None, progress: bool = False
-                           ) -> ChairRegistration:
+                           cloud: CloudConfig | None = None, progress: bool = False,
+                           pool: Pool = None) -> ChairRegistration:
     """:func:`chair_clouds` then :func:`register_chair` on a session folder (the scan from the
-    session unless ``scan`` is given). The scan is checked first, so a bad scan fails fast."""
+    session unless ``scan`` is given). The scan is checked first, so a bad scan fails fast.
+    ``pool``: :func:`chair_clouds`'s."""
     cfg = config or ChairConfig()
     t0 = wallclock.perf_counter()
     the_scan = load_scan(scan if scan is not None else session_scan_path(session_dir), cfg)
     clouds = chair_clouds(session_dir, extrinsics, frames=frames, step=step, config=cfg,
-                          segmentation=segmentation, cloud=cloud, progress=progress)
+                          segmentation=segmentation, cloud=cloud, progress=progress, pool=pool)
     took = wallclock.perf_counter() - t0
     reg = register_chair(the_scan, clouds, config=cfg, progress=progress)
     reg.seconds = {"clouds": took, **reg.seconds}

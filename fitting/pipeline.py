@@ -38,6 +38,8 @@ import os
 import time as wallclock
 import traceback
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +69,7 @@ from couch.fitting.chair import (
 from couch.fitting.contacts import ContactConfig, Contacts, detect_contacts
 from couch.fitting.params import BodyParams
 from couch.fitting.session import SessionFit, SessionFitConfig, fit_session
+from couch.pool import spawn_pool
 from couch.records import RecordError, read_record, write_record
 from couch.schema import ProcessedSession, write_processed
 from couch.sources import source_digest
@@ -524,8 +527,11 @@ class _Runner:
 
     def __init__(self, session_dir: Path, output: Path, config: ProcessConfig,
                  stages: tuple[str, ...], frames: tuple[int, int] | None, force: bool,
-                 progress: bool, extrinsics: Extrinsics | str | os.PathLike | None) -> None:
+                 progress: bool, extrinsics: Extrinsics | str | os.PathLike | None,
+                 workers: int = 1) -> None:
         self.root, self.out, self.cfg = session_dir, output, config
+        self.workers = workers
+        self.pool: ProcessPoolExecutor | None = None  # spawned by the first stage that runs
         self.wanted, self.frames, self.force, self.progress = stages, frames, force, progress
         self.given_extrinsics = extrinsics
         self.cache = output / "cache"
@@ -564,6 +570,10 @@ class _Runner:
             run.status, run.seconds = "cached", wallclock.perf_counter() - t0
             run.steps = dict(getattr(hit, "seconds", {}) or {})
             return hit
+        if self.pool is None and self.workers > 1:
+            # the workers import the stages' modules (seconds each) while this stage runs
+            self.pool = spawn_pool(self.workers, preload=("couch.fitting.session",),
+                                   start=True)
         value = compute()
         run.status, run.seconds = "ran", wallclock.perf_counter() - t0
         run.steps = dict(getattr(value, "seconds", {}) or {})
@@ -574,7 +584,8 @@ class _Runner:
         """The session synchronised (once per run) and the seconds this call took."""
         t0 = wallclock.perf_counter()
         if self._sync is None:
-            self._sync = sync_session(self.view, extrinsics=extrinsics, progress=self.progress)
+            self._sync = sync_session(self.view, extrinsics=extrinsics, progress=self.progress,
+                                      pool=self.pool)
         return self._sync, wallclock.perf_counter() - t0
 
     # -- stages
@@ -659,7 +670,7 @@ class _Runner:
             clouds = chair_clouds(self.view, ext, frames=rows, kinect=ss.kinect,
                                   tracks=ss.tracks, config=self.cfg.chair,
                                   segmentation=self.cfg.fit.segmentation, cloud=self.cfg.fit.cloud,
-                                  progress=self.progress)
+                                  progress=self.progress, pool=self.pool)
             took = wallclock.perf_counter() - t0
             reg = register_chair(the_scan, clouds, config=self.cfg.chair, progress=self.progress)
             reg.seconds = {"sync": sync_s, "clouds": took, **reg.seconds}
@@ -681,7 +692,8 @@ class _Runner:
         def compute() -> BodyResult:
             ss, sync_s = self.sync(ext)
             fit = fit_session(self.view, extrinsics=ext, chair=chair_model(chair), sync=ss,
-                              frames=self.frames, config=cfg, progress=self.progress)
+                              frames=self.frames, config=cfg, progress=self.progress,
+                              pool=self.pool)
             fit.seconds["sync"] = sync_s  # 0 when the chair stage synchronised
             return body_result(fit)
 
@@ -740,12 +752,20 @@ class _Runner:
             # the stages' format / layout / registration errors (all ValueError subclasses)
             # name the file: that message is the fault
             self._fail(current, str(exc))
+        except BrokenProcessPool as exc:
+            self._fail(current, f"a worker process died ({exc}): out of memory, or a script "
+                                f"that calls couch.process without `if __name__ == "
+                                f"'__main__':` (workers are spawned and import the script); "
+                                f"workers=1 (--workers 1) runs everything in this process")
         except Exception as exc:  # a bug: keep the traceback for the report, not on the console
             res.traceback = traceback.format_exc()
             self._fail(current, f"internal error ({type(exc).__name__}: {exc}); the traceback "
                                 f"is in the report")
         finally:
             bar.close()
+            if self.pool is not None:
+                self.pool.shutdown(cancel_futures=True)
+                self.pool = None
         res.seconds = wallclock.perf_counter() - t_start
         return res
 
@@ -767,7 +787,7 @@ def run_pipeline(session_dir: str | os.PathLike, output: str | os.PathLike | Non
                  frames: str | tuple[int, int] | None = None,
                  device: str | None = None, config: ProcessConfig | None = None,
                  extrinsics: Extrinsics | str | os.PathLike | None = None, force: bool = False,
-                 progress: bool = False) -> PipelineResult:
+                 progress: bool = False, workers: int | None = None) -> PipelineResult:
     """Run the pipeline's stages on a session folder (see the module doc).
 
     Args:
@@ -783,12 +803,17 @@ def run_pipeline(session_dir: str | os.PathLike, output: str | os.PathLike | Non
             ``extrinsics.json``).
         force: ignore the cache (results are still written to it).
         progress: progress bars.
+        workers: processes for the work that splits by camera or by frame (the cameras'
+            passes over their recordings, segmentation, the fits' chamfers), spawned when a
+            stage first runs; 1: all in this process; None: ``min(2, CPU count)``. The results
+            (and cache keys) do not depend on it.
 
     Returns:
         :class:`PipelineResult`; check ``ok`` / ``fault``. Only bad arguments raise.
 
     Raises:
-        ProcessError: the session folder does not exist, an unknown stage, a bad frame range.
+        ProcessError: the session folder does not exist, an unknown stage, a bad frame range,
+            ``workers`` < 1.
     """
     root = Path(session_dir)
     if not root.is_dir():
@@ -798,9 +823,12 @@ def run_pipeline(session_dir: str | os.PathLike, output: str | os.PathLike | Non
         cfg = dataclasses.replace(cfg, device=device)
     rng = parse_frames(frames) if isinstance(frames, str) or frames is None else tuple(frames)
     out = Path(output) if output is not None else root / "processed"
+    workers = min(2, os.cpu_count() or 1) if workers is None else int(workers)
+    if workers < 1:
+        raise ProcessError(f"workers must be >= 1, got {workers}")
     try:
         runner = _Runner(root, out, cfg, parse_stages(stages), rng, force, progress,  # type: ignore[arg-type]
-                         extrinsics)
+                         extrinsics, workers)
     except ValueError as exc:  # session.json unreadable
         res = PipelineResult(session=root, output=out, processed=None,
                              stages={s: StageRun(s) for s in STAGES})

@@ -6,9 +6,10 @@
    master clock (rows of the frame table), the IMU clock from the head top, the suit's poses
    resampled (slerp) at the rows' times;
 2. **person clouds** — every camera's recording segmented (:func:`couch.capture.segmentation.
-   segment_recording`, with the registered chair when given) and fused per row
-   (:func:`couch.capture.pointcloud.fuse_clouds`); a camera that dropped a row just adds
-   nothing to it;
+   segment_recording`, with the registered chair when given) and its person lifted to world
+   points (:func:`couch.capture.camera_clouds.camera_clouds`, the cameras spread over a pool
+   of worker processes when given one), then joined per row; a camera that dropped a row just
+   adds nothing to it;
 3. **IMU world → camera world** — MVN has its own heading and horizontal origin
    (:mod:`couch.capture.imu`). :func:`align_imu` finds the rotation about +Y and the
    translation that put the suit's body onto the clouds: a search over headings (every
@@ -47,27 +48,27 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
-from tqdm.auto import tqdm
 
 from couch.body import BodyModel
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
-from couch.capture.depth_bias import depth_correctors
-from couch.capture.pointcloud import CloudConfig, FusedCloud, fuse_clouds
+from couch.capture.camera_clouds import camera_clouds, join_cameras
+from couch.capture.depth_bias import unmeasured_warnings
+from couch.capture.pointcloud import CloudConfig, FusedCloud
 from couch.capture.segmentation import (
     ChairModel,
     SegmentationConfig,
     empty_room_recording,
-    segment_recording,
 )
 from couch.capture.session import session_files
 from couch.fitting.body import BodyFit, BodyFitConfig, cached_model, fit_bodies
 from couch.fitting.clouds import cloud_arrays
 from couch.fitting.fusion import FusionConfig, fuse_motion
-from couch.fitting.metrics import CameraView, Occluders, occluder_scene, surface_distances
+from couch.fitting.metrics import CameraView, occluder_scene, surface_distances
 from couch.fitting.params import BodyParams
 from couch.fitting.shape import ShapeFitConfig, fit_betas_to_scan, fit_shape
 from couch.geometry import apply_transform, vertex_normals
+from couch.pool import Pool, pool_map
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from couch.sync import (
     CameraTrack,
@@ -400,19 +401,32 @@ def _spread(fit: BodyFit, keys: np.ndarray, filler: BodyParams) -> BodyFit:
 
 def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud],
               views: Sequence[CameraView], present: np.ndarray,
-              occluders: Occluders | None, samples: int) -> np.ndarray:
+              occluders: tuple[np.ndarray, np.ndarray] | None, samples: int,
+              pool: Pool = None, chunk: int = 25) -> np.ndarray:
     """(T,) chamfer of posed meshes (T,V,3) to their clouds, the surface counted where one of
     the cameras that recorded the frame (``present`` (T,C)) could see it; NaN: no points.
     The whole cloud counts: a subsampled one would leave the surface farther from its nearest
-    point and raise the surface → points half."""
+    point and raise the surface → points half. Frame t's surface samples are seeded with t,
+    so ``pool`` (runs of ``chunk`` frames per task) changes nothing but the time."""
+    pts = [cloud_arrays(c)[0] for c in clouds]
+    verts = np.asarray(verts, np.float32)
+    tasks = [(verts[s:s + chunk], faces, pts[s:s + chunk], views, present[s:s + chunk],
+              occluders, samples, s) for s in range(0, len(verts), chunk)]
+    return np.concatenate([np.zeros(0), *pool_map(pool, _chamfer_run, tasks)])
+
+
+def _chamfer_run(verts: np.ndarray, faces: np.ndarray, points: Sequence[np.ndarray],
+                 views: Sequence[CameraView], present: np.ndarray,
+                 occluders: tuple[np.ndarray, np.ndarray] | None, samples: int, first: int
+                 ) -> np.ndarray:
+    """:func:`_chamfers` of frames ``first, first + 1, ...`` (a pool task)."""
     out = np.full(len(verts), np.nan)
-    occluders = occluder_scene(occluders) if occluders is not None else None
-    for k, cloud in enumerate(clouds):
-        pts = cloud_arrays(cloud)[0]
-        seen = [v for v, p in zip(views, present[k], strict=True) if p]
-        if len(pts) and seen:
-            out[k] = surface_distances(verts[k], faces, pts, visible_from=seen,
-                                       occluders=occluders, samples=samples, seed=k).chamfer
+    scene = occluder_scene(occluders) if occluders is not None else None
+    for k, p in enumerate(points):
+        seen = [v for v, ok in zip(views, present[k], strict=True) if ok]
+        if len(p) and seen:
+            out[k] = surface_distances(verts[k], faces, p, visible_from=seen, occluders=scene,
+                                       samples=samples, seed=first + k).chamfer
     return out
 
 
@@ -423,7 +437,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                    kinect: KinectSync, tracks: Sequence[CameraTrack], rows: np.ndarray, *,
                    chair: ChairModel | None = None,
                    segmentation: SegmentationConfig | None = None,
-                   cloud: CloudConfig | None = None, progress: bool = False
+                   cloud: CloudConfig | None = None, progress: bool = False,
+                   pool: Pool = None
                    ) -> tuple[list[FusedCloud], list[CameraView], list[str]]:
     """Person clouds at rows of the frame table.
 
@@ -443,6 +458,10 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
         chair: the registered chair (its points are kept out of the person), or None.
         segmentation, cloud: capture-stage configs.
         progress: progress bars.
+        pool: where the cameras' recordings are segmented and lifted to points
+            (:func:`couch.capture.camera_clouds.camera_clouds`, one camera per task,
+            :func:`couch.pool.spawn_pool`); None: one after another here. The clouds are the
+            same either way.
 
     Returns:
         (T clouds, the C cameras' :class:`~couch.fitting.metrics.CameraView` s (world),
@@ -453,44 +472,37 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
     rows = np.asarray(rows)
     by_serial = {t.serial: t.timestamp_us for t in tracks}
     track_stamps = [np.asarray(by_serial[s]) for s in kinect.serials]
-    segs, poses, warnings = [], [], []
-    for c, serial in enumerate(tqdm(kinect.serials, desc="segmentation", unit="camera",
-                                    disable=not progress)):
+    tasks = []
+    for c, serial in enumerate(kinect.serials):
         cam = files.camera(serial)
         if cam is None or cam.recording is None:
             raise SessionFitError(f"{files.root}: the sync stage read camera {serial} but the "
                                   f"session has no recording for it")
         pose = (extrinsics.world_from_depth(serial) if isinstance(extrinsics, Extrinsics)
                 else np.asarray(extrinsics[serial], np.float64))
-        empty = empty_room_recording(files.root, serial)
         k = kinect.frame_table[rows, c]
-        seg = segment_recording(cam.recording, pose, empty_room=empty,
-                                background_paths=[p for p in (cam.calibration_capture,)
-                                                  if p is not None],
-                                chair=chair, config=segmentation,
-                                timestamps=track_stamps[c][k[k >= 0]])
-        if seg.skipped:
-            warnings.append(f"{cam.recording}: {len(seg.skipped)} capture(s) without usable "
-                            f"depth skipped")
-        segs.append(seg)
-        poses.append(pose)
-    _, fixes, unmeasured = depth_correctors(segs, kinect.serials, cloud)
-    warnings += unmeasured
-    stamps = [{f.timestamp_us: f for f in s.frames} for s in segs]
+        tasks.append(dict(recording=cam.recording, world_from_depth=pose,
+                          empty_room=empty_room_recording(files.root, serial),
+                          background_paths=[p for p in (cam.calibration_capture,)
+                                            if p is not None],
+                          chair=chair, segmentation=segmentation, cloud=cloud,
+                          timestamps=track_stamps[c][k[k >= 0]]))
+    parts = pool_map(pool, camera_clouds, tasks,
+                     desc="segmentation" if progress else None, unit="camera")
+    warnings = [f"{p.recording}: {p.skipped} capture(s) without usable depth skipped"
+                for p in parts if p.skipped]
+    if cloud.depth_bias:
+        warnings += unmeasured_warnings(kinect.serials, [p.depth_bias for p in parts])
     clouds = []
-    for r in tqdm(rows, desc="clouds", unit="frame", disable=not progress):
-        depths, masks = [], []
-        for c in range(len(segs)):
-            k = int(kinect.frame_table[r, c])
-            f = stamps[c].get(int(track_stamps[c][k])) if k >= 0 else None
-            depths.append(None if f is None else fixes[c](f.depth_mm))
-            masks.append(None if f is None else f.person_reliable)
-        clouds.append(fuse_clouds(depths, masks, [s.calibration for s in segs], poses,
-                                  time=float(kinect.time[r]), config=cloud))
-    views = [CameraView(p, s.calibration.depth, s.background.depth,
-                        depth_range=DEPTH_RANGE_M.get(s.calibration.depth_mode),
-                        max_incidence_deg=80.0)
-             for p, s in zip(poses, segs, strict=True)]
+    for r in rows:
+        ks = kinect.frame_table[r]
+        clouds.append(join_cameras(parts, [p.frame(int(track_stamps[c][k])) if k >= 0 else None
+                                           for c, (p, k) in enumerate(zip(parts, ks,
+                                                                          strict=True))],
+                                   time=float(kinect.time[r])))
+    views = [CameraView(p.world_from_depth, p.calibration.depth, p.background,
+                        depth_range=DEPTH_RANGE_M.get(p.calibration.depth_mode),
+                        max_incidence_deg=80.0) for p in parts]
     return clouds, views, warnings
 
 
@@ -677,7 +689,8 @@ def fit_session(session_dir: str | os.PathLike, *,
                 extrinsics: Extrinsics | dict[str, np.ndarray] | None = None,
                 chair: ChairModel | None = None, scan: str | os.PathLike | None = None,
                 sync: SessionSync | None = None, frames: tuple[int, int] | None = None,
-                config: SessionFitConfig | None = None, progress: bool = False) -> SessionFit:
+                config: SessionFitConfig | None = None, progress: bool = False,
+                pool: Pool = None) -> SessionFit:
     """Sync, clouds, IMU-initialised per-frame fits and sequence fusion of one session.
 
     Args:
@@ -692,6 +705,8 @@ def fit_session(session_dir: str | os.PathLike, *,
             None: every row the IMU recording covers.
         config: :class:`SessionFitConfig`.
         progress: progress bars.
+        pool: where the cameras' passes and the chamfers' runs of frames go
+            (:func:`couch.pool.spawn_pool`); None: all here. The fit is the same either way.
 
     Raises:
         SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person
@@ -706,7 +721,8 @@ def fit_session(session_dir: str | os.PathLike, *,
 
     t0 = time.perf_counter()
     ext = extrinsics if extrinsics is not None else calibrate_session(root)
-    ss = sync if sync is not None else sync_session(root, extrinsics=ext, progress=progress)
+    ss = sync if sync is not None else sync_session(root, extrinsics=ext, progress=progress,
+                                                        pool=pool)
     warnings += [f"sync: {w}" for w in ss.kinect.warnings]
     if ss.resampled is None or ss.imu_clock is None or ss.imu is None:
         raise SessionFitError(f"{root}: the session has no IMU recording (imu/*.mvnx); the body "
@@ -739,7 +755,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     t0 = time.perf_counter()
     clouds, views, w = session_clouds(root, ext, ss.kinect, ss.tracks, rows[keys], chair=chair,
                                         segmentation=cfg.segmentation, cloud=cfg.cloud,
-                                        progress=progress)
+                                        progress=progress, pool=pool)
     warnings += [f"capture: {x}" for x in w]
     cameras = np.array([v.centre for v in views])
     seconds["clouds"] = time.perf_counter() - t0
@@ -795,15 +811,14 @@ def fit_session(session_dir: str | os.PathLike, *,
     t0 = time.perf_counter()
     occluders = None
     if chair is not None:
-        occluders = occluder_scene((apply_transform(np.asarray(chair.world_from_object,
-                                                               np.float64),
-                                                    np.asarray(chair.vertices, np.float64)),
-                                    np.asarray(chair.faces)))
+        occluders = (apply_transform(np.asarray(chair.world_from_object, np.float64),
+                                     np.asarray(chair.vertices, np.float64)),
+                     np.asarray(chair.faces))
     measure = cached_model(cfg.error_model, bcfg.device, bcfg.dtype)
     fit_verts, _ = pose_body(measure, fit.params)
     present = ss.kinect.frame_table[rows[keys]] >= 0
     fit_chamfer = _chamfers(fit_verts, measure.faces, clouds, views, present, occluders,
-                            bcfg.error_samples)
+                            bcfg.error_samples, pool)
     fit_chamfer[fit.fallback] = np.nan
     rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, measure, cfg,
                           vertices=fit_verts)
@@ -847,7 +862,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     joints = pose_body(full, fused)[1]
     fused_chamfer = _spread_rows(
         _chamfers(pose_body(measure, fused.frames(keys))[0], measure.faces, clouds, views,
-                  present, occluders, bcfg.error_samples), keys, len(rows), np.nan)
+                  present, occluders, bcfg.error_samples, pool), keys, len(rows), np.nan)
     seconds["errors"] += time.perf_counter() - t0
     for m in warnings:
         log.warning("%s", m)

@@ -18,6 +18,7 @@ from couch.capture.calibration import Extrinsics, calibrate_session
 from couch.capture.imu import ImuMotion, mvnx_to_smpl
 from couch.capture.mvnx import read_mvnx
 from couch.capture.session import session_files
+from couch.pool import Pool
 from couch.sync.clock import ClockEstimate, ClockModel, ClockSyncConfig
 from couch.sync.imu import sync_imu
 from couch.sync.kinect import KinectSync, KinectSyncConfig, sync_tracks
@@ -79,7 +80,7 @@ def sync_session(session_dir: str | os.PathLike, *,
                  kinect_config: KinectSyncConfig | None = None,
                  clock_config: ClockSyncConfig | None = None,
                  initial: ClockModel | None = None, search_s: float | None = None,
-                 progress: bool = False) -> SessionSync:
+                 progress: bool = False, pool: Pool = None) -> SessionSync:
     """Synchronise a session folder (``couch-simulate``'s layout / ``session.json``).
 
     Args:
@@ -89,13 +90,14 @@ def sync_session(session_dir: str | os.PathLike, *,
         track_config, kinect_config, clock_config: knobs of the steps.
         initial, search_s: prior IMU clock and search half-width (see :func:`sync_imu`).
         progress: progress bars.
+        pool: where the cameras' passes run (:func:`couch.pool.spawn_pool`); None: here.
 
     Raises:
         SyncError: from the steps (names the files).
     """
     root = Path(session_dir)
     ext = extrinsics if extrinsics is not None else calibrate_session(root)
-    tracks = session_tracks(root, ext, config=track_config, progress=progress)
+    tracks = session_tracks(root, ext, config=track_config, progress=progress, pool=pool)
     kinect = sync_tracks(tracks, config=kinect_config)
     for w in kinect.warnings:
         log.warning("%s", w)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
@@ -47,6 +47,7 @@ from couch.capture.segmentation import (
     foreground,
 )
 from couch.capture.session import session_files
+from couch.pool import Pool, pool_map
 
 __all__ = ["CameraTrack", "TrackConfig", "camera_track", "session_streams", "session_tracks"]
 
@@ -267,7 +268,7 @@ def session_tracks(session_dir: str | os.PathLike,
                    extrinsics: Extrinsics | Mapping[str, np.ndarray], *,
                    config: TrackConfig | None = None,
                    backgrounds: Mapping[str, BackgroundModel] | None = None,
-                   progress: bool = False) -> list[CameraTrack]:
+                   progress: bool = False, pool: Pool = None) -> list[CameraTrack]:
     """:func:`camera_track` for every camera of a session folder, master first.
 
     Backgrounds: ``backgrounds[serial]`` when given; else the camera's empty-room recording
@@ -281,13 +282,16 @@ def session_tracks(session_dir: str | os.PathLike,
             world_from_depth``.
         config: see :class:`TrackConfig`.
         backgrounds: ready background models per serial.
-        progress: progress bars.
+        progress: progress bars (over the cameras; and over each one's frames without a
+            ``pool``).
+        pool: where the cameras' passes run (:func:`couch.pool.spawn_pool`, one camera per
+            task); None: one after another here. The tracks are the same either way.
 
     Raises:
         KeyError: a camera without a pose in ``extrinsics`` (the message names it).
     """
     cfg = config or TrackConfig()
-    tracks = []
+    tasks = []
     for serial, path, calibration in session_streams(session_dir):
         if isinstance(extrinsics, Extrinsics):
             if serial not in extrinsics.cameras:
@@ -297,12 +301,20 @@ def session_tracks(session_dir: str | os.PathLike,
             if serial not in extrinsics:
                 raise KeyError(f"no extrinsics for camera {serial} ({path})")
             pose = np.asarray(extrinsics[serial])
-        if backgrounds is not None and serial in backgrounds:
-            bg = backgrounds[serial]
-        else:
+        bg = backgrounds.get(serial) if backgrounds is not None else None
+        if bg is None:
             empty = empty_room_recording(session_dir, serial)
-            sources: Sequence[Path] = ([empty] if empty is not None else
-                                       [p for p in (calibration, path) if p is not None])
-            bg = background_from_recordings(sources, cfg.segmentation)
-        tracks.append(camera_track(path, pose, bg, config=cfg, progress=progress))
-    return tracks
+            bg = [empty] if empty is not None else [p for p in (calibration, path)
+                                                    if p is not None]
+        tasks.append((path, pose, bg, cfg, progress and pool is None))
+    return pool_map(pool, _track, tasks, desc="camera signals" if progress else None,
+                    unit="camera")
+
+
+def _track(path: Path, pose: np.ndarray, background: BackgroundModel | list[Path],
+           config: TrackConfig, progress: bool) -> CameraTrack:
+    """One camera's :func:`camera_track`, its background model built first from the
+    recordings listed (a pool task: plain arguments)."""
+    if not isinstance(background, BackgroundModel):
+        background = background_from_recordings(background, config.segmentation)
+    return camera_track(path, pose, background, config=config, progress=progress)

@@ -498,3 +498,26 @@ def test_a_frame_that_loses_the_chair_after_a_choice_of_turns(tmp_path):
     assert reg.ambiguous  # the turns were weighed
     assert err["surface_mm"] <= 5.0
     assert 23 in [i for i, _ in reg.rejected]
+
+
+def test_a_pool_of_workers_gives_the_same_chair_clouds(sim):
+    """Two spawned workers, each segmenting and lifting whole cameras, give the chair clouds,
+    views and depth errors of one process, every 3rd frame of each camera (no frame table)."""
+    from couch.pool import spawn_pool
+
+    s = sim("straight")
+    ref = chair_clouds(s["root"], s["ext"], step=3)
+    with spawn_pool(2) as pool:
+        cc = chair_clouds(s["root"], s["ext"], step=3, pool=pool)
+    assert np.array_equal(cc.frames, ref.frames) and np.array_equal(cc.time, ref.time)
+    assert np.array_equal(cc.frames, s["clouds"].frames[::3])
+    for ours, theirs in zip(cc.clouds, ref.clouds, strict=True):
+        assert np.array_equal(ours.points, theirs.points)
+        assert np.array_equal(ours.camera, theirs.camera)
+    for ours, theirs in zip(cc.views, ref.views, strict=True):
+        assert np.array_equal(ours.background, theirs.background)
+    assert [b.report() if b else None for b in cc.depth_bias] == \
+        [b.report() if b else None for b in ref.depth_bias]
+    # every 3rd frame of the full run's clouds: the same points
+    for ours, theirs in zip(cc.clouds, s["clouds"].clouds[::3], strict=True):
+        assert np.array_equal(ours.points, theirs.points)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import textwrap
 import time
 
 import pytest
 import torch
 
-from couch.pool import finished, spawn_pool
+from couch.pool import finished, pool_map, spawn_pool
 
 
 def test_workers_run_one_torch_thread_each():
@@ -33,3 +34,24 @@ def test_a_failed_task_cancels_the_tasks_not_started():
 def test_no_workers_is_an_error():
     with pytest.raises(ValueError, match="workers must be >= 1"):
         spawn_pool(0)
+
+
+def test_pool_map_keeps_the_order_and_takes_keywords():
+    tasks = [(9.0,), (4.0,), (1.0,)]
+    with spawn_pool(2, torch_threads=None) as pool:
+        assert pool_map(pool, math.sqrt, tasks) == [3.0, 2.0, 1.0]
+        assert pool_map(pool, textwrap.shorten, [dict(text="a bb ccc dddd", width=9),
+                                                 dict(text="a bb", width=9)]) == ["a [...]",
+                                                                                  "a bb"]
+        with pytest.raises(ValueError, match="math domain error"):
+            pool_map(pool, math.sqrt, [(1.0,), (-1.0,)])
+    # without a pool: the same, here
+    assert pool_map(None, math.sqrt, tasks) == [3.0, 2.0, 1.0]
+    assert pool_map(None, textwrap.shorten, [dict(text="a bb", width=9)]) == ["a bb"]
+
+
+def test_preloaded_workers_have_the_modules_when_started():
+    loaded = "'{}' in __import__('sys').modules"
+    with spawn_pool(1, preload=("xml.dom.minidom",), start=True) as pool:
+        assert pool.submit(eval, loaded.format("xml.dom.minidom")).result()
+        assert not pool.submit(eval, loaded.format("xml.sax")).result()

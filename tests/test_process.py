@@ -394,7 +394,8 @@ def test_cli(tmp_path):
     assert not (tmp_path / "o" / "processed.h5").exists()
     for args, message in ((["--stages", "bogus"], "unknown stage"),
                           (["--frames", "9:3"], "START < STOP"),
-                          (["--fit-stride", "0"], "--fit-stride must be >= 1")):
+                          (["--fit-stride", "0"], "--fit-stride must be >= 1"),
+                          (["--workers", "0"], "--workers must be >= 1")):
         bad = subprocess.run([str(exe), str(FIXTURE), "-o", str(tmp_path / "o"), *args],
                              capture_output=True, text=True, timeout=600)
         assert bad.returncode == 2 and message in bad.stderr
@@ -457,6 +458,8 @@ def test_bad_arguments_raise():
         run_pipeline(FIXTURE, stages="fit")
     with pytest.raises(ProcessError, match="START:STOP"):
         run_pipeline(FIXTURE, frames="a:b")
+    with pytest.raises(ProcessError, match="workers must be >= 1"):
+        run_pipeline(FIXTURE, workers=0)
 
 
 def test_records_are_plain_hdf5(run):

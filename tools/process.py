@@ -32,7 +32,8 @@ def process(session_dir: str | os.PathLike, output: str | os.PathLike | None = N
             stages: str | Sequence[str] | None = None, frames: str | tuple[int, int] | None = None,
             device: str | None = None, config: ProcessConfig | None = None,
             extrinsics: Extrinsics | str | os.PathLike | None = None, force: bool = False,
-            report: bool = True, progress: bool = False) -> PipelineResult:
+            report: bool = True, progress: bool = False, workers: int | None = None
+            ) -> PipelineResult:
     """Process one session folder: ``processed.h5``, ``report/`` and ``cache/`` in ``output``.
 
     Args:
@@ -49,6 +50,8 @@ def process(session_dir: str | os.PathLike, output: str | os.PathLike | None = N
         force: recompute every stage (the cache is rewritten).
         report: write ``report/`` (HTML page, plots, previews, ``summary.json``).
         progress: progress bars.
+        workers: processes for the per-camera and per-frame work (1: none spawned; None:
+            ``min(2, CPU count)``); the results do not depend on it.
 
     Returns:
         The :class:`~couch.fitting.pipeline.PipelineResult`. A session that cannot be processed
@@ -56,10 +59,12 @@ def process(session_dir: str | os.PathLike, output: str | os.PathLike | None = N
         what ran.
 
     Raises:
-        ProcessError: the session folder does not exist, an unknown stage, a bad frame range.
+        ProcessError: the session folder does not exist, an unknown stage, a bad frame range,
+            ``workers`` < 1.
     """
     result = run_pipeline(session_dir, output, stages=stages, frames=frames, device=device,
-                          config=config, extrinsics=extrinsics, force=force, progress=progress)
+                          config=config, extrinsics=extrinsics, force=force, progress=progress,
+                          workers=workers)
     if report:
         from couch.tools.report import write_report  # matplotlib only when a report is made
 
@@ -96,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
                          "fit.body.clothing_margin=0.005 or contacts.enter_distance=0.025; the "
                          "keys are ProcessConfig's fields, dotted (stages whose settings "
                          "change are recomputed, the others come from the cache)")
+    ap.add_argument("--workers", type=int, default=None, metavar="N",
+                    help="processes for the per-camera and per-frame work (default min(2, CPU "
+                         "count); 1: none spawned); the results do not depend on it")
     ap.add_argument("--force", action="store_true", help="ignore cached stage results")
     ap.add_argument("--no-report", action="store_true", help="do not write report/")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars or warnings")
@@ -116,12 +124,15 @@ def main(argv: list[str] | None = None) -> int:
         config = with_overrides(config, args.set)
     except ValueError as exc:
         ap.error(str(exc))
+    if args.workers is not None and args.workers < 1:
+        ap.error("--workers must be >= 1")
     if args.extrinsics is not None and not Path(args.extrinsics).is_file():
         ap.error(f"--extrinsics {args.extrinsics}: no such file")
     try:
         result = process(args.session, args.output, stages=args.stages, frames=args.frames,
                          device=args.device, config=config, extrinsics=args.extrinsics,
-                         force=args.force, report=not args.no_report, progress=not args.quiet)
+                         force=args.force, report=not args.no_report, progress=not args.quiet,
+                         workers=args.workers)
     except ProcessError as exc:
         print(f"couch-process: {exc}", file=sys.stderr)
         return 2

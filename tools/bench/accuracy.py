@@ -418,13 +418,13 @@ def _point_errors(align: np.ndarray, ours: np.ndarray, true: np.ndarray) -> np.n
 
 def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: float,
          overrides: tuple[str, ...] = (), reuse: bool = False,
-         sim_overrides: tuple[str, ...] = ()) -> SessionAccuracy | str:
+         sim_overrides: tuple[str, ...] = (), workers: int | None = 1) -> SessionAccuracy | str:
     """One session simulated (unless ``work`` holds it), processed (``overrides``: ``--set``
     items on the default :class:`ProcessConfig`; ``reuse``: cached stage results whose inputs
     and settings are unchanged serve, else every stage runs) and measured; a string says why
     it could not be. ``sim_overrides``: ``--sim-set`` items on the session's
     :class:`~couch.tools.sim.session.SessionConfig`; a kept session simulated otherwise (in
-    those settings or the oracles') is not measured."""
+    those settings or the oracles') is not measured. ``workers``: ``couch-process``'s."""
     from couch.tools.sim.session import (
         ORACLES,
         NoPlausibleSequence,
@@ -454,7 +454,7 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
             return f"not simulated: {e}"
     config = with_overrides(ProcessConfig(), overrides)
     result = couch.process(root, work / f"{name}.out", config=config, force=not reuse,
-                           report=False)
+                           report=False, workers=workers)
     if not result.ok:
         return f"processing failed at {result.fault[0]}: {result.fault[1]}"
     return session_accuracy(result, read_processed(root / "ground_truth.h5"),
@@ -464,14 +464,14 @@ def _one(name: str, settings: dict[str, Any], work: Path, fps: float, duration: 
 
 def _timed(label: str, name: str, settings: dict[str, Any], work: Path, fps: float,
            duration: float, threads: int | None, overrides: tuple[str, ...] = (),
-           reuse: bool = False, sim_overrides: tuple[str, ...] = ()
-           ) -> tuple[str, SessionAccuracy | str, float]:
+           reuse: bool = False, sim_overrides: tuple[str, ...] = (),
+           workers: int | None = 1) -> tuple[str, SessionAccuracy | str, float]:
     """:func:`_one` in a worker process: (label, its result, seconds)."""
     if threads:
         torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    return (label, _one(name, settings, work, fps, duration, overrides, reuse, sim_overrides),
-            time.perf_counter() - t0)
+    return (label, _one(name, settings, work, fps, duration, overrides, reuse, sim_overrides,
+                        workers), time.perf_counter() - t0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -538,7 +538,9 @@ def main(argv: list[str] | None = None) -> int:
                 tasks.append((f"{name}{offset:+d}" if offset else name, name,
                               dict(settings, seed=settings["seed"] + offset), work, args.fps,
                               args.duration, args.threads, tuple(args.set), args.reuse,
-                              tuple(args.sim_set)))
+                              tuple(args.sim_set),
+                              # the sessions spread over the cores (--jobs), or one session does
+                              1 if args.jobs > 1 else None))
         if args.jobs == 1:
             for task in tasks:
                 report(*_timed(*task))

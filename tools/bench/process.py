@@ -6,9 +6,10 @@ and prints the wall time of every stage and of the steps inside it, the recordin
 over the total wall time (goal >= 1.0x real time), the CPU time, and the load average.
 
 Run: ``python -m couch.tools.bench.process [SESSION_DIR] [--duration S] [--fps F] [--threads K]
-[--no-report] [--set KEY=VALUE ...]`` (``--set``: ``couch-process``'s, e.g.
-``fit.fit_stride=3``). ``--threads 1`` (or ``OMP_WAIT_POLICY=PASSIVE``) keeps torch's OpenMP threads
-from spin-waiting on a machine other processes keep busy (see ``couch.tools.bench.fitting``).
+[--workers N] [--no-report] [--set KEY=VALUE ...]`` (``--set``: ``couch-process``'s, e.g.
+``fit.fit_stride=3``; ``--workers``: ``couch-process``'s, default ``min(2, cores)``).
+``--threads 1`` (or ``OMP_WAIT_POLICY=PASSIVE``) keeps torch's OpenMP threads from
+spin-waiting on a machine other processes keep busy (see ``couch.tools.bench.fitting``).
 """
 
 from __future__ import annotations
@@ -27,12 +28,13 @@ from couch.overrides import with_overrides
 from couch.schema import read_processed
 
 
-def bench(session: Path, output: Path, report: bool, config: ProcessConfig | None = None
-          ) -> None:
-    """Process ``session`` into ``output`` (no cache) with ``config`` (None: the default) and
-    print the timings."""
+def bench(session: Path, output: Path, report: bool, config: ProcessConfig | None = None,
+          workers: int | None = None) -> None:
+    """Process ``session`` into ``output`` (no cache) with ``config`` (None: the default) on
+    ``workers`` processes (None: couch-process's default) and print the timings."""
     cpu0, t0 = time.process_time(), time.perf_counter()
-    result = couch.process(session, output, force=True, report=report, config=config)
+    result = couch.process(session, output, force=True, report=report, config=config,
+                           workers=workers)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     if not result.ok:
         print(result.summary())
@@ -53,7 +55,8 @@ def bench(session: Path, output: Path, report: bool, config: ProcessConfig | Non
           f"recording: {duration / wall:.2f}x real time ({duration / result.seconds:.2f}x "
           f"without the report); {1e3 * wall / data.num_frames:.0f} ms per frame of "
           f"{len(result.calibration.cameras)} cameras")
-    print(f"torch threads {torch.get_num_threads()}, cores {os.cpu_count()}, load average "
+    print(f"torch threads {torch.get_num_threads()}, workers {workers or 'default'}, cores "
+          f"{os.cpu_count()}, load average "
           f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 
@@ -65,6 +68,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fps", type=float, default=30.0, help="simulated Kinect frame rate")
     ap.add_argument("--seed", type=int, default=5, help="simulator seed")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="couch-process --workers (default: its default, min(2, cores))")
     ap.add_argument("--no-report", action="store_true", help="leave the report out")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change one setting of the processing config (repeatable; "
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
                   f"{cfg.cameras} cameras, {cfg.depth_mode}, depth only, seed {cfg.seed}")
             session = Path(tmp) / "session"
             simulate_session(session, cfg, progress=False)
-        bench(session, Path(tmp) / "out", not args.no_report, config)
+        bench(session, Path(tmp) / "out", not args.no_report, config, args.workers)
 
 
 if __name__ == "__main__":
