@@ -105,9 +105,8 @@ def camera_clouds(recording: str | os.PathLike, world_from_depth: np.ndarray, *,
         mask: which pixels of a frame to lift (see :data:`MaskFn`; default the person's).
         timestamps: device µs of the frames to keep; indices: positions among the usable
             captures instead; neither: every ``step``-th.
-        bias_on_all: segment every frame and measure the depth error over all of them before
-            keeping those asked for (else only the frames asked for are segmented, and the
-            error is measured on them).
+        bias_on_all: measure the depth error on ``cloud.bias_frames`` frames spread over every
+            usable capture (segmenting them too) rather than over the frames asked for.
         person_dilate_px: the person's growth when the depth error leaves it out.
         far: also return the farthest depth per pixel over the kept frames.
 
@@ -116,21 +115,40 @@ def camera_clouds(recording: str | os.PathLike, world_from_depth: np.ndarray, *,
     """
     cloud = cloud or CloudConfig()
     pose = np.asarray(world_from_depth, np.float64)
+    usable = np.zeros(0, np.int64)  # every usable capture's timestamp, set by select()
+
+    def kept(stamps: np.ndarray) -> np.ndarray:
+        """The timestamps of the frames asked for, in the order asked."""
+        if timestamps is not None:
+            return stamps[np.isin(stamps, np.asarray(timestamps, np.int64))]
+        if indices is not None:
+            return stamps[np.asarray(indices, int)]
+        return stamps[::max(1, int(step))]
+
+    def bias_stamps(stamps: np.ndarray) -> np.ndarray:
+        # recording_depth_bias's frames, spread over the usable captures
+        picks = np.unique(np.linspace(0, len(stamps) - 1, cloud.bias_frames).round().astype(int))
+        return stamps[picks] if cloud.depth_bias and cloud.bias_frames >= 1 else stamps[:0]
+
+    def select(stamps: np.ndarray) -> set[int]:
+        nonlocal usable
+        usable = stamps
+        more = bias_stamps(stamps) if bias_on_all else stamps[:0]
+        return {int(t) for t in np.concatenate([kept(stamps), more])}
+
     seg = segment_recording(recording, pose, empty_room=empty_room,
                             background_paths=background_paths, chair=chair,
-                            config=segmentation,
-                            timestamps=None if bias_on_all else timestamps)
-    bias = (recording_depth_bias(seg, cloud.bias_frames, person_dilate_px)
-            if cloud.depth_bias else None)
-    frames = seg.frames
-    if indices is not None:
-        frames = [frames[int(i)] for i in indices]
-    elif timestamps is not None:
-        if bias_on_all:
-            wanted = {int(t) for t in timestamps}
-            frames = [f for f in frames if f.timestamp_us in wanted]
-    else:
-        frames = frames[::max(1, int(step))]
+                            config=segmentation, timestamps=select)
+    by_stamp = {f.timestamp_us: f for f in seg.frames}
+    frames = [by_stamp[int(t)] for t in kept(usable)]
+    bias = None
+    if cloud.depth_bias:
+        on = [by_stamp[int(t)] for t in bias_stamps(usable)] if bias_on_all else frames
+        # recording_depth_bias spreads its picks over the frames it is given: with bias_on_all
+        # those are already the picks, so it takes every one
+        bias = recording_depth_bias(dataclasses.replace(seg, frames=on),
+                                    len(on) if bias_on_all else cloud.bias_frames,
+                                    person_dilate_px)
     fix = bias.corrector(seg.calibration) if bias is not None else None
     points, normals = [], []
     farthest = np.zeros(seg.background.depth.shape, np.uint16) if far else None

@@ -63,7 +63,7 @@ import dataclasses
 import functools
 import logging
 import os
-from collections.abc import Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -725,7 +725,8 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
                       background_paths: Iterable[str | os.PathLike] = (),
                       include_session: bool = True, chair: ChairModel | None = None,
                       config: SegmentationConfig | None = None,
-                      timestamps: Collection[int] | None = None) -> CameraSegmentation:
+                      timestamps: Collection[int] | Callable[[np.ndarray], Collection[int]]
+                      | None = None) -> CameraSegmentation:
     """Segment the depth frames of one camera's Azure Kinect MKV recording.
 
     Args:
@@ -744,10 +745,13 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
             calibration captures had something in front, e.g. the ChArUco board).
         chair: the registered chair, if known.
         config: thresholds.
-        timestamps: device timestamps (µs) of the captures to segment; None: every capture.
-            The background (``include_session``) and the static chair (no ``chair``) still
-            come from every usable capture's depth, and ``skipped`` lists the whole
-            recording's unusable captures; ``frames`` holds only those asked for.
+        timestamps: device timestamps (µs) of the captures to segment, or a function of the
+            (N,) int64 timestamps of the usable captures (in recording order) that returns
+            them; None: every capture. The background (``include_session``) and the static
+            chair (no ``chair``) still come from every usable capture's depth, and ``skipped``
+            lists the whole recording's unusable captures; ``frames`` holds only those asked
+            for, and only their depth is held in memory (the recording is read two or three
+            times instead).
 
     Raises:
         SegmentationError: the file has no DEPTH stream, no frame with valid depth, or depth
@@ -765,49 +769,96 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     if world_from_depth.shape != (4, 4):
         raise SegmentationError(f"{path}: world_from_depth must be (4, 4), got "
                                 f"{world_from_depth.shape}")
-    captures = [(c.index, c.timestamp_us, c.depth_mm) for c in rec]
-    skipped: list[tuple[int, str]] = [(s.capture_index if s.capture_index is not None else -1,
-                                       f"{s.track}: {s.reason}") for s in rec.skipped]
-    usable = []
-    for index, stamp, depth in captures:
+    # the recording is read in passes and only the frames needed are held: a long session's
+    # decoded depth does not fit in memory (reading a capture again costs ~0.2 ms)
+    usable: list[tuple[int, int]] = []  # (capture index, device timestamp) with valid depth
+    invalid: list[tuple[int, str]] = []
+    shape = None
+    captures = 0
+    for c in rec:
+        captures += 1
+        depth = c.depth_mm
         if depth is None:
-            skipped.append((index, "no depth image in this capture"))
+            invalid.append((c.index, "no depth image in this capture"))
         elif not np.any(depth):
-            skipped.append((index, "depth image is all zeros (invalid)"))
+            invalid.append((c.index, "depth image is all zeros (invalid)"))
         else:
-            usable.append((index, stamp, depth))
+            usable.append((c.index, c.timestamp_us))
+            shape = shape or depth.shape
+    skipped: list[tuple[int, str]] = [(s.capture_index if s.capture_index is not None else -1,
+                                       f"{s.track}: {s.reason}") for s in rec.skipped] + invalid
     if not usable:
-        raise SegmentationError(f"{path}: none of its {len(captures)} captures has valid depth "
+        raise SegmentationError(f"{path}: none of its {captures} captures has valid depth "
                                 f"(all missing or all zeros)")
+    stamps = np.array([t for _, t in usable], np.int64)
+    if callable(timestamps):
+        timestamps = timestamps(stamps)
+    asked = None if timestamps is None else {int(t) for t in timestamps}
+    wanted = {i for i, t in usable if asked is None or t in asked}
     if background is None and empty_room is not None:
         background = background_from_recordings([empty_room], cfg)
+
+    def check(bg: BackgroundModel) -> BackgroundModel:
+        if bg.depth.shape != shape:
+            raise SegmentationError(f"{path}: depth images {shape} do not match the "
+                                    f"background {bg.depth.shape}")
+        return bg
+
+    if background is not None:
+        check(background)
+    sampled: set[int] = set()
+    models = []
     if background is None:
         # each recording's own k-th farthest depth, then the farthest of them (combine)
         models = [background_from_recordings(background_paths, cfg)] if background_paths else []
         if include_session or not models:
             step = max(1, -(-len(usable) // cfg.max_background_frames))  # ceil
-            models.append(BackgroundModel.from_frames([d for _, _, d in usable[::step]], cfg))
-        background = BackgroundModel.combine(models)
-    if background.depth.shape != usable[0][2].shape:
-        raise SegmentationError(f"{path}: depth images {usable[0][2].shape} do not match the "
-                                f"background {background.depth.shape}")
+            sampled = {i for i, _ in usable[::step]}
+    static_needed = chair is None and len(usable) >= cfg.static_min_frames
     view = _View.of(calib, world_from_depth)
-    static = None
-    if chair is None and len(usable) >= cfg.static_min_frames:
-        # the static chair is what stays in the foreground over the whole recording
-        fgs = [_foreground(d, background, view, cfg) for _, _, d in usable]
-        static = static_foreground(np.stack([m for m, _ in fgs]), cfg)
-        fg_of = {s: fg for (_, s, _), fg in zip(usable, fgs, strict=True)}
-    else:
-        fg_of = {}
-    asked = None if timestamps is None else {int(t) for t in timestamps}
-    wanted = usable if asked is None else [u for u in usable if u[1] in asked]
-    fgs_wanted = [fg_of[s] if s in fg_of else _foreground(d, background, view, cfg)
-                  for _, s, d in wanted]
+    depths: dict[int, np.ndarray] = {}  # capture index -> depth, of the frames segmented
+    fg_of: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    count = np.zeros(shape, np.int64) if static_needed else None
+
+    def pass_over(collect: bool, foregrounds: bool) -> None:
+        """One read of the recording: the depths of the frames asked for (and the background
+        samples) with ``collect``; every usable frame's foreground counted with
+        ``foregrounds`` (the wanted ones' kept)."""
+        bg_frames = []
+        for c in rec:
+            if c.index in wanted or c.index in sampled or foregrounds:
+                depth = c.depth_mm
+                if depth is None or not np.any(depth):
+                    continue
+                if collect and c.index in sampled:
+                    bg_frames.append(depth)
+                if collect and c.index in wanted:
+                    depths[c.index] = depth
+                if foregrounds:
+                    fg = _foreground(depth, background, view, cfg)
+                    np.add(count, fg[0], out=count)
+                    if c.index in wanted:
+                        fg_of[c.index] = fg
+        if bg_frames:
+            models.append(BackgroundModel.from_frames(bg_frames, cfg))
+
+    # the static chair is what stays in the foreground over the whole recording: every
+    # frame's foreground, against a background known before the pass or made by it
+    pass_over(collect=True, foregrounds=static_needed and background is not None)
+    if background is None:
+        background = check(BackgroundModel.combine(models))
+        if static_needed:
+            pass_over(collect=False, foregrounds=True)
+    # as static_foreground: the share of frames in the foreground (exact counts / T)
+    static = count / len(usable) >= cfg.static_fraction if count is not None else None
     room_chair = None if chair is None else room_on_chair(background, calib, world_from_depth,
                                                           chair, cfg.chair_distance)
-    frames = [_split(d, fg, view, chair, static, room_chair, cfg, i, s)
-              for (i, s, d), fg in zip(wanted, fgs_wanted, strict=True)]
+    frames = []
+    for i, t in usable:
+        if i in wanted:
+            d = depths[i]
+            fg = fg_of[i] if i in fg_of else _foreground(d, background, view, cfg)
+            frames.append(_split(d, fg, view, chair, static, room_chair, cfg, i, t))
     if skipped:
         log.warning("%s: skipped %d capture(s) without usable depth", path, len(skipped))
     return CameraSegmentation(serial=rec.serial or path.stem, calibration=calib,

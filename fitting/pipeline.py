@@ -522,6 +522,10 @@ def parse_stages(stages: str | Sequence[str] | None) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- the pipeline
 
 
+#: the stages whose computing starts the worker pool (the chair's and the body's use it)
+_POOLED = ("calibrate", "chair", "body")
+
+
 class _Runner:
     """Runs the stages of one session, each through the cache."""
 
@@ -570,8 +574,11 @@ class _Runner:
             run.status, run.seconds = "cached", wallclock.perf_counter() - t0
             run.steps = dict(getattr(hit, "seconds", {}) or {})
             return hit
-        if self.pool is None and self.workers > 1:
-            # the workers import the stages' modules (seconds each) while this stage runs
+        if (self.pool is None and self.workers > 1 and name in _POOLED
+                and self.wanted[-1] != "calibrate"):
+            # spawned with the first of these stages to run (a calibration that runs makes the
+            # chair's key new): the workers import the stages' modules (seconds each) while it
+            # runs
             self.pool = spawn_pool(self.workers, preload=("couch.fitting.session",),
                                    start=True)
         value = compute()

@@ -323,3 +323,51 @@ def test_a_pool_of_workers_gives_the_same_fit(sim):
     assert np.array_equal(sf.reliability, ref.reliability)
     assert np.array_equal(sf.chamfer, ref.chamfer, equal_nan=True)
     assert np.array_equal(sf.joints, ref.joints)
+
+
+def test_segmenting_a_few_captures_holds_only_their_depth(sim):
+    """``segment_recording`` without a chair on session a (50 captures a camera, so the static
+    chair is found from every capture's foreground): asking for three captures (by a function
+    of the usable captures' timestamps) gives their masks and background exactly as segmenting
+    every capture does, while holding a fraction of the memory (the recording is read again
+    instead) — with the background made from the recording's own captures (three reads), and
+    with a background given that leaves the room in the foreground, so that the static part
+    of it is in the chair masks (two reads)."""
+    import tracemalloc
+
+    from couch.capture.segmentation import BackgroundModel, segment_recording
+
+    s = sim("a")
+    cam = s["info"]["cameras"][1]
+    path = s["root"] / "kinect" / f"{cam['serial']}.mkv"
+    pose = np.asarray(cam["world_from_depth"])
+    picks = [5, 20, 40]
+    peak = {}
+    own = None
+    for name in ("own", "given"):
+        # given: 0.5 m behind the recording's own, so that all of the room is foreground
+        background = None if own is None else BackgroundModel(own.depth + 0.5, own.near + 0.5,
+                                                              own.frames)
+        peaks, segs = [], []
+        for ask in (None, lambda stamps: stamps[picks]):
+            tracemalloc.start()
+            segs.append(segment_recording(path, pose, background, timestamps=ask))
+            peaks.append(tracemalloc.get_traced_memory()[1])
+            tracemalloc.stop()
+        full, part = segs
+        own = full.background
+        assert len(full.frames) >= 45 and len(part.frames) == 3
+        assert np.array_equal(part.background.depth, full.background.depth)
+        for f, g in zip(part.frames, [full.frames[k] for k in picks], strict=True):
+            assert f.timestamp_us == g.timestamp_us and np.array_equal(f.depth_mm, g.depth_mm)
+            for mask in ("person", "chair", "person_reliable", "chair_reliable"):
+                assert np.array_equal(getattr(f, mask), getattr(g, mask)), mask
+        peak[name] = peaks
+    print(f"peak traced memory, every capture / three: background from the recording "
+          f"{peak['own'][0] / 1e6:.1f} / {peak['own'][1] / 1e6:.1f} MB, given "
+          f"{peak['given'][0] / 1e6:.1f} / {peak['given'][1] / 1e6:.1f} MB")
+    assert all(f.chair.sum() > 1000 for f in part.frames), "the static room is in the masks"
+    # with a background given, the three frames and per-pixel counts are held (8.8 of 35.9
+    # MB); the recording's own background also holds its samples (at most
+    # max_background_frames) while it is made (16.4 of 32.8)
+    assert peak["given"][1] < 0.35 * peak["given"][0] and peak["own"][1] < 0.6 * peak["own"][0]

@@ -42,7 +42,9 @@ FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "sessions" / "sim_f
 @pytest.fixture(scope="session")
 def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("processed")
-    result = couch.process(FIXTURE, out)
+    # two worker processes, as couch-process runs on a 2-core machine (the other runs of the
+    # pipeline here use one, the tests' own processes keeping the cores busy)
+    result = couch.process(FIXTURE, out, workers=2)
     print(result.summary())
     return result
 
@@ -114,7 +116,7 @@ def test_end_to_end_on_more_sessions(name, tmp_path):
     settings, labels = SESSIONS[name]
     simulate_session(root, SessionConfig(cameras=4, depth_mode="NFOV_2X2BINNED", color=False,
                                          charuco_poses=4, **settings), progress=False)
-    result = couch.process(root, tmp_path / "out", report=False)
+    result = couch.process(root, tmp_path / "out", report=False, workers=1)
     assert result.ok, result.summary()
     a = session_accuracy(result, read_processed(root / "ground_truth.h5"),
                          json.loads((root / "truth.json").read_text()))
@@ -282,7 +284,7 @@ def test_changed_code_reruns_the_stages_it_computes(run, tmp_path, monkeypatch):
     old = pipeline.code_digest
     monkeypatch.setattr(pipeline, "code_digest",
                         lambda stage: "0" * 64 if stage == "chair" else old(stage))
-    changed = run_pipeline(FIXTURE, out, stages="chair")
+    changed = run_pipeline(FIXTURE, out, stages="chair", workers=1)
     assert changed.ok
     assert [changed.stages[s].status for s in ("calibrate", "chair")] == ["cached", "ran"]
 
@@ -292,7 +294,7 @@ def test_frame_range_refits_only_the_body(run, tmp_path):
     the calibration come from the cache."""
     out = tmp_path / "out"
     shutil.copytree(run.output / "cache", out / "cache")
-    part = run_pipeline(FIXTURE, out, frames="10:20")
+    part = run_pipeline(FIXTURE, out, frames="10:20", workers=1)
     assert part.ok, part.summary()
     assert [part.stages[s].status for s in STAGES] == ["cached", "cached", "ran", "ran"]
     data = read_processed(part.processed)
@@ -325,7 +327,7 @@ def test_corrupted_mvnx_is_a_fault_naming_the_file(run, tmp_path):
     root, out = _view(tmp_path, run.output, skip=(mvnx,))
     text = (FIXTURE / mvnx).read_bytes()
     (root / mvnx).write_bytes(text[: len(text) // 2])  # cut mid-XML
-    result = couch.process(root, out)
+    result = couch.process(root, out, workers=1)
     assert not result.ok and result.fault[0] == "body"
     assert "recording.mvnx" in result.fault[1] and not result.traceback
     # the stages that do not read the IMU came from the cache
@@ -347,7 +349,7 @@ def test_bad_chair_scan_is_a_fault_naming_the_file(run, truth, tmp_path, kind):
         lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f[: len(f) * 2 // 3]]
     (root / "chair_scan.obj").write_text("\n".join(lines) + "\n")
-    result = couch.process(root, out)
+    result = couch.process(root, out, workers=1)
     assert not result.ok and result.fault[0] == "chair", result.summary()
     assert "chair_scan.obj" in result.fault[1] and not result.traceback
     assert result.stages["calibrate"].status == "cached"
@@ -358,7 +360,7 @@ def test_missing_camera_is_left_out_with_a_warning(run, truth, tmp_path):
     gt, info = truth
     serial = json.loads((FIXTURE / "session.json").read_text())["kinect"][1]["serial"]
     root, out = _view(tmp_path, None, skip=(f"kinect/{serial}.mkv",))
-    result = couch.process(root, out, report=False)
+    result = couch.process(root, out, report=False, workers=1)
     assert result.ok, result.summary()
     assert result.calibration.cameras and serial not in result.calibration.cameras
     assert any(serial in w and "left out" in w for w in result.warnings)
@@ -378,7 +380,8 @@ def test_truncated_mkv_is_used_up_to_the_cut_and_reported(run, tmp_path):
     root, out = _view(tmp_path, None, skip=(rel,))
     data = (FIXTURE / rel).read_bytes()
     (root / rel).write_bytes(data[: int(len(data) * 0.6)])
-    result = couch.process(root, out, report=False)
+    # on two workers: the cut recording is read (several times) in a worker process
+    result = couch.process(root, out, report=False, workers=2)
     assert result.ok, result.summary()
     assert any(serial in w and "truncated" in w for w in result.warnings)
     assert result.body.cameras_present[:, result.body.camera_serials.index(serial)].mean() < 0.8
