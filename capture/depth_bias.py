@@ -23,12 +23,10 @@ import cv2
 import numpy as np
 
 from .azure_calibration import KinectCalibration
-from .pointcloud import CloudConfig
 from .registration import pixel_rays
 from .segmentation import CameraSegmentation
 
-__all__ = ["DepthBias", "depth_correctors", "floor_depth_bias", "recording_depth_bias",
-           "unmeasured_warnings"]
+__all__ = ["DepthBias", "floor_depth_bias", "recording_depth_bias", "unmeasured_warnings"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,27 +133,6 @@ def recording_depth_bias(segmentation: CameraSegmentation, frames: int = 5,
         person = cv2.dilate(f.person.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         depths.append(np.where(person, 0, f.depth_mm).astype(np.uint16))
     return floor_depth_bias(depths, seg.calibration, seg.world_from_depth)
-
-
-def _as_recorded(depth_mm: np.ndarray) -> np.ndarray:
-    return depth_mm
-
-
-def depth_correctors(segmentations: Sequence[CameraSegmentation], serials: Sequence[str],
-                     config: CloudConfig, person_dilate_px: int = 3
-                     ) -> tuple[list[DepthBias | None], list[Callable[[np.ndarray], np.ndarray]],
-                                list[str]]:
-    """Per camera (with ``config.depth_bias``): its :func:`recording_depth_bias` (None: not
-    measured) and the function to apply to its (H,W) uint16 mm frames (its
-    :meth:`DepthBias.corrector`, or the depth as recorded), and a warning for each camera that
-    saw too little floor to measure."""
-    if not config.depth_bias:
-        return [None] * len(segmentations), [_as_recorded] * len(segmentations), []
-    biases = [recording_depth_bias(s, config.bias_frames, person_dilate_px)
-              for s in segmentations]
-    fixes = [_as_recorded if b is None else b.corrector(s.calibration)
-             for b, s in zip(biases, segmentations, strict=True)]
-    return biases, fixes, unmeasured_warnings(serials, biases)
 
 
 def unmeasured_warnings(serials: Sequence[str], biases: Sequence[DepthBias | None]) -> list[str]:

@@ -7,8 +7,9 @@ COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
    it as foreground (the segmentation's ``chair`` masks need the registered chair, which is
    what this module produces). What may be the chair is therefore everything each camera sees
    *except* the person (the segmentation's person mask, grown by a few pixels), the floor
-   (y <= ``floor_tolerance``) and depth edges (flying pixels), fused over cameras per frame
-   (:func:`couch.capture.pointcloud.fuse_clouds`). The room's clutter stays in; the
+   (y <= ``floor_tolerance``) and depth edges (flying pixels), lifted to points per camera
+   (:func:`couch.capture.camera_clouds.camera_clouds`, the cameras spread over worker processes
+   when given a pool) and joined per frame. The room's clutter stays in; the
    registration picks the chair out of it by shape. Each camera's systematic depth error
    (offset, scale, radial: a few millimetres on an Azure Kinect) is measured on the floor it
    sees and taken out of its depth first (:mod:`couch.capture.depth_bias`): the cameras disagreeing
