@@ -30,7 +30,7 @@ from .segmentation import (
     segment_recording,
 )
 
-__all__ = ["CameraClouds", "camera_clouds", "join_cameras", "person_mask"]
+__all__ = ["CameraClouds", "camera_clouds", "join_cameras", "join_row", "person_mask"]
 
 MaskFn = Callable[..., np.ndarray]
 """``mask(frame, segmentation, depth=depth)`` → (H,W) bool pixels to lift, given the frame's
@@ -183,3 +183,12 @@ def join_cameras(parts: Sequence[CameraClouds], frames: Sequence[int | None], ti
         return FusedCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
                           np.zeros(0, np.int8), float(time))
     return FusedCloud(np.concatenate(pts), np.concatenate(nrm), np.concatenate(cam), float(time))
+
+
+def join_row(parts: Sequence[CameraClouds], row: np.ndarray, stamps: Sequence[np.ndarray],
+             time: float) -> FusedCloud:
+    """:func:`join_cameras` of one row of a frame table: camera c's frame ``row[c]`` of its
+    recording (< 0: dropped), found among its kept frames by its device timestamp
+    ``stamps[c][row[c]]``."""
+    return join_cameras(parts, [p.frame(int(s[k])) if k >= 0 else None
+                                for p, s, k in zip(parts, stamps, row, strict=True)], time)

@@ -69,7 +69,7 @@ from tqdm.auto import tqdm
 
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics
-from couch.capture.camera_clouds import camera_clouds, join_cameras
+from couch.capture.camera_clouds import camera_clouds, join_cameras, join_row
 from couch.capture.depth_bias import DepthBias, unmeasured_warnings
 from couch.capture.pointcloud import CloudConfig, FusedCloud
 from couch.capture.segmentation import (
@@ -514,12 +514,10 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
         warnings += unmeasured_warnings(serials, [p.depth_bias for p in parts])
     clouds, times = [], []
     if sel is not None:
+        stamps = [np.asarray(by_serial[s]) for s in serials]
         for r in sel:
             t = float(kinect.time[r])  # type: ignore[attr-defined]
-            ks = [int(k) for k in table[r]]
-            clouds.append(join_cameras(parts, [p.frame(int(by_serial[serials[c]][k])) if k >= 0
-                                               else None for c, (p, k)
-                                               in enumerate(zip(parts, ks, strict=True))], t))
+            clouds.append(join_row(parts, table[r], stamps, t))
             times.append(t)
     else:
         count = min(len(p.timestamps) for p in parts)

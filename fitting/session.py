@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from couch.body import BodyModel
 from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
-from couch.capture.camera_clouds import camera_clouds, join_cameras
+from couch.capture.camera_clouds import camera_clouds, join_row
 from couch.capture.depth_bias import unmeasured_warnings
 from couch.capture.pointcloud import CloudConfig, FusedCloud
 from couch.capture.segmentation import (
@@ -493,13 +493,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
                 for p in parts if p.skipped]
     if cloud.depth_bias:
         warnings += unmeasured_warnings(kinect.serials, [p.depth_bias for p in parts])
-    clouds = []
-    for r in rows:
-        ks = kinect.frame_table[r]
-        clouds.append(join_cameras(parts, [p.frame(int(track_stamps[c][k])) if k >= 0 else None
-                                           for c, (p, k) in enumerate(zip(parts, ks,
-                                                                          strict=True))],
-                                   time=float(kinect.time[r])))
+    clouds = [join_row(parts, kinect.frame_table[r], track_stamps, float(kinect.time[r]))
+              for r in rows]
     views = [CameraView(p.world_from_depth, p.calibration.depth, p.background,
                         depth_range=DEPTH_RANGE_M.get(p.calibration.depth_mode),
                         max_incidence_deg=80.0) for p in parts]
