@@ -73,6 +73,7 @@ from couch.fitting.terms import (
     smoothness,
     visible_vertices,
 )
+from couch.pool import Pool, pool_map
 from couch.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 __all__ = [
@@ -513,7 +514,7 @@ def evaluate_fit(params: BodyParams, clouds: Sequence[Any], cameras: np.ndarray 
 
 
 def _fit(clouds: Sequence[Any], init: BodyParams, cameras: np.ndarray | None,
-         cfg: BodyFitConfig, progress: bool, chunk: int) -> BodyFit:
+         cfg: BodyFitConfig, progress: bool, chunk: int, pool: Pool = None) -> BodyFit:
     cams = _check_inputs(clouds, init, cameras)
     stages = default_stages(cfg)
     counts = np.array([len(cloud_arrays(c)[0]) for c in clouds])
@@ -521,17 +522,24 @@ def _fit(clouds: Sequence[Any], init: BodyParams, cameras: np.ndarray | None,
     fitted = np.flatnonzero(~fallback)
     iters = sum(s.iters for s in stages)
     chunks = [fitted[a:a + chunk] for a in range(0, len(fitted), chunk)]
-    aa = np.zeros((len(fitted), 24, 3), np.float32)
-    tr = np.zeros((len(fitted), 3), np.float32)
     start = time.perf_counter()
-    with tqdm(total=iters * len(chunks), disable=not progress, desc="body fit",
-              unit="it") as bar:
-        done = 0
-        for idx in chunks:
-            padded = pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed, frame_ids=idx)
-            a, t, _ = optimise(stages, padded, init.frames(idx), cams, cfg, idx, bar)
-            aa[done:done + len(idx)], tr[done:done + len(idx)] = a, t
-            done += len(idx)
+    if pool is not None and len(chunks) > 1:
+        # the chunks are independent (every term is per frame, or couples a chunk's frames
+        # only): each on a worker, fitted exactly as here
+        tasks = [(pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed, frame_ids=idx),
+                  init.frames(idx), cams, cfg, idx) for idx in chunks]
+        out = pool_map(pool, _fit_chunk, tasks, desc="body fit" if progress else None,
+                       unit="chunk")
+    else:
+        out = []
+        with tqdm(total=iters * len(chunks), disable=not progress, desc="body fit",
+                  unit="it") as bar:
+            for idx in chunks:
+                padded = pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed,
+                                    frame_ids=idx)
+                out.append(optimise(stages, padded, init.frames(idx), cams, cfg, idx, bar)[:2])
+    aa = np.concatenate([np.zeros((0, 24, 3), np.float32), *(a for a, _ in out)])
+    tr = np.concatenate([np.zeros((0, 3), np.float32), *(t for _, t in out)])
     seconds = time.perf_counter() - start
     params = _assemble(init, fitted, aa, tr, init.betas)
     joints, ch, ts, tp = evaluate_fit(params, clouds, cams, cfg, fallback, errors=cfg.errors)
@@ -539,8 +547,16 @@ def _fit(clouds: Sequence[Any], init: BodyParams, cameras: np.ndarray | None,
                    num_points=counts, fallback=fallback, seconds=seconds)
 
 
+def _fit_chunk(clouds: PaddedClouds, init: BodyParams, cameras: np.ndarray | None,
+               cfg: BodyFitConfig, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One chunk of :func:`fit_bodies` (a pool task): rotations (B,24,3) and translations
+    (B,3)."""
+    return optimise(default_stages(cfg), clouds, init, cameras, cfg, frame_ids)[:2]
+
+
 def fit_bodies(clouds: Sequence[Any], init: BodyParams, *, cameras: np.ndarray | None = None,
-               config: BodyFitConfig | None = None, progress: bool = False) -> BodyFit:
+               config: BodyFitConfig | None = None, progress: bool = False,
+               pool: Pool = None) -> BodyFit:
     """Fit the body in every frame to its point cloud, frames batched (see the module doc).
 
     Args:
@@ -553,6 +569,9 @@ def fit_bodies(clouds: Sequence[Any], init: BodyParams, *, cameras: np.ndarray |
             towards the cloud. None: the whole surface is.
         config: :class:`BodyFitConfig`.
         progress: show a tqdm bar.
+        pool: where the chunks of ``config.batch_frames`` frames are fitted
+            (:func:`couch.pool.spawn_pool`, one torch thread per worker); None: all here.
+            A chunk is fitted the same either way.
 
     Returns:
         :class:`BodyFit`.
@@ -564,7 +583,7 @@ def fit_bodies(clouds: Sequence[Any], init: BodyParams, *, cameras: np.ndarray |
     cfg = config or BodyFitConfig()
     if cfg.batch_frames < 1:
         raise ValueError(f"batch_frames must be >= 1, got {cfg.batch_frames}")
-    return _fit(clouds, init, cameras, cfg, progress, cfg.batch_frames)
+    return _fit(clouds, init, cameras, cfg, progress, cfg.batch_frames, pool)
 
 
 def fit_bodies_frame_by_frame(clouds: Sequence[Any], init: BodyParams, *,

@@ -639,7 +639,8 @@ def refine_alignment(fitted_joints: np.ndarray, imu_joints: np.ndarray, weights:
 def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: np.ndarray,
                     fallback: np.ndarray, views: Sequence[CameraView], model: BodyModel,
                     config: SessionFitConfig | None = None, *,
-                    vertices: np.ndarray | None = None) -> np.ndarray:
+                    vertices: np.ndarray | None = None, pool: Pool = None,
+                    chunk: int = 25) -> np.ndarray:
     """(T,24) weights of per-frame fits for the fusion, in [0, 1].
 
     Per frame: 0 for a fallback frame (too few points), else from its chamfer (1 at or below
@@ -648,29 +649,45 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
     point within ``support_distance``, mapped from [``min_support``, ``full_support``] to
     [0, 1] (a limb hidden behind the chair faces a camera but is not backed by points; a limb
     out of every image has no support at all). ``vertices``: the (T,V,3) posed mesh of
-    ``params`` when the caller has it already.
+    ``params`` when the caller has it already. ``pool``: where runs of ``chunk`` frames go
+    (:func:`couch.pool.spawn_pool`; each frame's weights depend on that frame alone, so it
+    changes nothing but the time); None: all here.
     """
     cfg = config or SessionFitConfig()
     t = params.num_frames
     verts = pose_body(model, params)[0] if vertices is None else np.asarray(vertices, np.float64)
     seg = model.weights.cpu().numpy().argmax(1)  # (V,) the joint moving each vertex most
-    normals = vertex_normals(verts, model.faces)
+    ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
+    frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
+    frame_w[np.asarray(fallback, bool)] = 0.0
+    pts = [cloud_arrays(c)[0] for c in clouds]
+    tasks = [(verts[s:s + chunk], np.asarray(model.faces), seg, pts[s:s + chunk], views,
+              frame_w[s:s + chunk], cfg) for s in range(0, t, chunk)]
+    return np.concatenate([np.zeros((0, 24)), *pool_map(pool, _reliability_run, tasks)])
+
+
+def _reliability_run(verts: np.ndarray, faces: np.ndarray, seg: np.ndarray,
+                     points: Sequence[np.ndarray], views: Sequence[CameraView],
+                     frame_w: np.ndarray, cfg: SessionFitConfig) -> np.ndarray:
+    """:func:`fit_reliability` of a run of frames (a pool task): posed meshes (n,V,3), their
+    clouds' points, the per-frame weights; ``seg`` (V,) the joint moving each vertex most."""
+    keep = np.flatnonzero(frame_w > 0)
+    out = np.zeros((len(verts), 24))
+    if not len(keep):
+        return out
+    verts = verts[keep]
+    normals = vertex_normals(verts, faces)
     # facing a camera that has the vertex in its image
     facing = np.zeros(verts.shape[:2], bool)
     for view in views:
         # projecting is the cost: only vertices facing this camera and not yet seen by another
         todo = (((view.centre - verts) * normals).sum(-1) > 0) & ~facing
         facing[todo] = view.in_view(verts[todo])
-    ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
-    frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
-    frame_w[np.asarray(fallback, bool)] = 0.0
-    out = np.zeros((t, 24))
     onehot = np.eye(24)[seg]  # (V,24)
-    for k in np.flatnonzero(frame_w > 0):
-        pts = cloud_arrays(clouds[k])[0]
-        d, _ = cKDTree(pts).query(verts[k], distance_upper_bound=cfg.support_distance)
-        backed = (d <= cfg.support_distance) & facing[k]
-        n_facing = facing[k] @ onehot
+    for i, k in enumerate(keep):
+        d, _ = cKDTree(points[k]).query(verts[i], distance_upper_bound=cfg.support_distance)
+        backed = (d <= cfg.support_distance) & facing[i]
+        n_facing = facing[i] @ onehot
         frac = np.divide(backed @ onehot, n_facing, out=np.zeros(24), where=n_facing > 0)
         out[k] = frame_w[k] * np.clip((frac - cfg.min_support)
                                       / (cfg.full_support - cfg.min_support), 0.0, 1.0)
@@ -800,7 +817,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     init = _shifted(imu_body_params(imu_k, align, betas, full), shift)
     # the fit's own errors see cameras as centres only; ours below know the images and chair
     fit = fit_bodies(clouds, init, cameras=cameras, config=dataclasses.replace(bcfg, errors=False),
-                     progress=progress)
+                     progress=progress, pool=pool)
     seconds["fit"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -816,7 +833,7 @@ def fit_session(session_dir: str | os.PathLike, *,
                             bcfg.error_samples, pool)
     fit_chamfer[fit.fallback] = np.nan
     rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, measure, cfg,
-                          vertices=fit_verts)
+                          vertices=fit_verts, pool=pool)
     if (rel > 0).any():
         align = refine_alignment(fit.joints, imu_k.joint_positions, rel)
     else:

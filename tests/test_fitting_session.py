@@ -302,7 +302,9 @@ def test_fit_stride_fits_every_kth_row_and_the_suit_carries_the_rest(sim):
 
 def test_a_pool_of_workers_gives_the_same_fit(sim):
     """With a pool of two spawned workers (the cameras' passes, segmentation and clouds, and
-    the chamfers' runs of frames there) session a (5 fps, 5 % of the frames dropped) is fitted
+    the chamfers' and reliability's runs of frames there; its 50 rows are one chunk of the
+    fits, whose pool `test_fitting_body` checks) session a (5 fps, 5 % of the frames dropped)
+    is fitted
     exactly as in one process: the same clouds point for point, errors, reliability and
     fused motion."""
     from couch.pool import spawn_pool

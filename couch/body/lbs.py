@@ -38,9 +38,12 @@ def rigid_transforms(rot_mats: torch.Tensor, joints: torch.Tensor,
     local = torch.cat([rot_mats, rel_joints[..., None]], dim=-1)
     bottom = joints.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(b, nj, 1, 4)
     local = torch.cat([local, bottom], dim=-2)
-    chain = [local[:, 0]]
+    # unbind, not local[:, j]: each indexing's backward would zero a whole (B,J,4,4) gradient
+    # (over a long sequence that was a third of the fusion's time)
+    parts = local.unbind(1)
+    chain = [parts[0]]
     for j in range(1, nj):
-        chain.append(chain[int(parents[j])] @ local[:, j])
+        chain.append(chain[int(parents[j])] @ parts[j])
     world = torch.stack(chain, dim=1)
     posed_joints = world[..., :3, 3]
     # Subtract the rotated rest location so each transform acts on rest-pose model coordinates.
