@@ -575,8 +575,8 @@ def _median_steps(trees: Sequence[cKDTree], pts: Sequence[np.ndarray], rot: np.n
 
 
 def snap_to_clouds(clouds: Sequence[FusedCloud], params: BodyParams, model: BodyModel, *,
-                   points: int = 800, steps: int = 30, min_points: int = 100, seed: int = 0
-                   ) -> np.ndarray:
+                   points: int = 800, steps: int = 30, min_points: int = 100, seed: int = 0,
+                   pool: Pool = None, chunk: int = 50) -> np.ndarray:
     """(T,3) metres per frame that move the posed body of ``params`` onto its cloud (zeros for
     frames with fewer than ``min_points`` points): :func:`align_imu`'s robust translation
     steps, frame by frame, up to ``steps`` of them or until one is under 0.5 mm (a 20 cm offset
@@ -586,18 +586,33 @@ def snap_to_clouds(clouds: Sequence[FusedCloud], params: BodyParams, model: Body
     error's lever arm puts it: on a simulated session the aligned suit stood 23 cm (median) off
     its clouds, more than the fits' 10 cm correspondence cut-off, and the fits failed (MPJPE
     4.60 cm; 1.03 cm with the fits started from here).
+
+    ``pool``: where runs of ``chunk`` frames go (:func:`couch.pool.spawn_pool`; the points'
+    subsets are drawn here, so it changes nothing but the time); None: all here.
     """
     verts, _ = pose_body(model, params)
     rng = np.random.default_rng(seed)
-    out = np.zeros((params.num_frames, 3))
-    eye = np.eye(3)
-    for i, cloud in enumerate(clouds):
+    subsets = []
+    for cloud in clouds:
         p = cloud_arrays(cloud)[0].astype(np.float64)
         if len(p) < min_points:
+            subsets.append(None)
             continue
         if len(p) > points:
             p = p[rng.choice(len(p), points, replace=False)]
-        out[i] = _median_steps([cKDTree(verts[i])], [p], eye, np.zeros(3), steps, tol=5e-4)
+        subsets.append(p)
+    tasks = [(verts[s:s + chunk], subsets[s:s + chunk], steps) for s in range(0, len(verts), chunk)]
+    return np.concatenate([np.zeros((0, 3)), *pool_map(pool, _snap_run, tasks)])
+
+
+def _snap_run(verts: np.ndarray, points: Sequence[np.ndarray | None], steps: int) -> np.ndarray:
+    """:func:`snap_to_clouds` of a run of frames (a pool task): posed meshes (n,V,3) and each
+    frame's points (None: too few, no shift)."""
+    out = np.zeros((len(verts), 3))
+    for i, p in enumerate(points):
+        if p is not None:
+            out[i] = _median_steps([cKDTree(verts[i])], [p], np.eye(3), np.zeros(3), steps,
+                                   tol=5e-4)
     return out
 
 
@@ -785,7 +800,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     if cfg.snap_init:
         shift = snap_to_clouds(clouds, suit, coarse,
                                points=cfg.align_points, min_points=bcfg.min_points,
-                               seed=bcfg.seed)
+                               seed=bcfg.seed, pool=pool)
     seconds["align"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -204,6 +204,15 @@ def test_snap_moves_each_frame_onto_its_cloud():
     ok = [0, 1, 2, 4]
     assert np.linalg.norm(shift[ok] - drift[ok], axis=1).max() < 0.015
     assert np.array_equal(shift[3], np.zeros(3))
+    # runs of two frames on two workers, the clouds subsampled: the same shifts
+    from couch.pool import spawn_pool
+
+    here = snap_to_clouds(clouds, params, coarse, points=250, min_points=100)
+    with spawn_pool(2) as pool:
+        there = snap_to_clouds(clouds, params, coarse, points=250, min_points=100, pool=pool,
+                               chunk=2)
+    assert np.array_equal(here, there)
+    assert np.linalg.norm(here[ok] - drift[ok], axis=1).max() < 0.015
 
 
 def test_session_without_imu_is_a_clear_error(sim, tmp_path):
