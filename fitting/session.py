@@ -886,7 +886,10 @@ def fit_session(session_dir: str | os.PathLike, *,
         fused = fit.params
     seconds["fusion"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    joints = pose_body(full, fused)[1]
+    with torch.no_grad():  # the skeleton alone: the same joints as posing the whole mesh
+        joints = full.skeleton(betas=fused.betas[None], global_orient=fused.global_orient,
+                               body_pose=fused.body_pose, transl=fused.transl)[0]
+    joints = joints.cpu().numpy().astype(np.float64)
     fused_chamfer = _spread_rows(
         _chamfers(pose_body(measure, fused.frames(keys))[0], measure.faces, clouds, views,
                   present, occluders, bcfg.error_samples, pool), keys, len(rows), np.nan)
