@@ -811,9 +811,10 @@ def run_pipeline(session_dir: str | os.PathLike, output: str | os.PathLike | Non
         force: ignore the cache (results are still written to it).
         progress: progress bars.
         workers: processes for the work that splits by camera or by frame (the cameras'
-            passes over their recordings, segmentation, the fits' chamfers), spawned when
-            calibrate, chair or body first has to run; 1: all in this process; None: ``min(2,
-            CPU count)``. The results (and cache keys) do not depend on it.
+            passes over their recordings, segmentation, the fits, their chamfers and
+            reliability), spawned when calibrate, chair or body first has to run; 1: all in
+            this process; None: ``min(2, CPU count)``. The results (and cache keys) do not
+            depend on it.
 
     Returns:
         :class:`PipelineResult`; check ``ok`` / ``fault``. Only bad arguments raise.

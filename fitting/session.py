@@ -732,8 +732,9 @@ def fit_session(session_dir: str | os.PathLike, *,
             None: every row the IMU recording covers.
         config: :class:`SessionFitConfig`.
         progress: progress bars.
-        pool: where the cameras' passes and the chamfers' runs of frames go
-            (:func:`couch.pool.spawn_pool`); None: all here. The fit is the same either way.
+        pool: where the cameras' passes, the snap, the fits' chunks and the chamfers' and
+            reliability's runs of frames go (:func:`couch.pool.spawn_pool`); None: all here.
+            The fit is the same either way.
 
     Raises:
         SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person

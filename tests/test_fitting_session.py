@@ -313,9 +313,8 @@ def test_a_pool_of_workers_gives_the_same_fit(sim):
     """With a pool of two spawned workers (the cameras' passes, segmentation and clouds, and
     the chamfers' and reliability's runs of frames there; its 50 rows are one chunk of the
     fits, whose pool `test_fitting_body` checks) session a (5 fps, 5 % of the frames dropped)
-    is fitted
-    exactly as in one process: the same clouds point for point, errors, reliability and
-    fused motion."""
+    is fitted exactly as in one process: the same clouds point for point, errors,
+    reliability and fused motion."""
     from couch.pool import spawn_pool
 
     s = sim("a")
