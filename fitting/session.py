@@ -399,35 +399,55 @@ def _spread(fit: BodyFit, keys: np.ndarray, filler: BodyParams) -> BodyFit:
         fallback=_spread_rows(fit.fallback, keys, t, False))
 
 
-def _chamfers(verts: np.ndarray, faces: np.ndarray, clouds: Sequence[FusedCloud],
+def _chamfers(model: tuple[str, str, str], params: BodyParams, clouds: Sequence[FusedCloud],
               views: Sequence[CameraView], present: np.ndarray,
               occluders: tuple[np.ndarray, np.ndarray] | None, samples: int,
-              pool: Pool = None, chunk: int = 25) -> np.ndarray:
-    """(T,) chamfer of posed meshes (T,V,3) to their clouds, the surface counted where one of
-    the cameras that recorded the frame (``present`` (T,C)) could see it; NaN: no points.
-    The whole cloud counts: a subsampled one would leave the surface farther from its nearest
-    point and raise the surface → points half. Frame t's surface samples are seeded with t,
-    so ``pool`` (runs of ``chunk`` frames per task) changes nothing but the time."""
+              pool: Pool = None, chunk: int = 25, *, fallback: np.ndarray | None = None,
+              reliability: SessionFitConfig | None = None
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(T,) chamfer of ``params`` posed by ``model`` (:func:`cached_model`'s name, device,
+    dtype) to their clouds, the surface counted where one of the cameras that recorded the
+    frame (``present`` (T,C)) could see it; NaN: no points. With ``reliability`` (a config),
+    also the (T,24) :func:`fit_reliability` weights of the same posed meshes, the chamfer NaN
+    where ``fallback`` (T,). The whole cloud counts: a subsampled one would leave the surface
+    farther from its nearest point and raise the surface → points half. Frame t's surface
+    samples are seeded with t, and each run of ``chunk`` frames poses its own meshes (a
+    worker is sent parameters, not vertices), so ``pool`` changes nothing but the time."""
     pts = [cloud_arrays(c)[0] for c in clouds]
-    verts = np.asarray(verts, np.float32)
-    tasks = [(verts[s:s + chunk], faces, pts[s:s + chunk], views, present[s:s + chunk],
-              occluders, samples, s) for s in range(0, len(verts), chunk)]
-    return np.concatenate([np.zeros(0), *pool_map(pool, _chamfer_run, tasks)])
+    t = params.num_frames
+    fallback = np.zeros(t, bool) if fallback is None else np.asarray(fallback, bool)
+    tasks = [(model, params.frames(slice(s, s + chunk)), pts[s:s + chunk], views,
+              present[s:s + chunk], occluders, samples, s, fallback[s:s + chunk], reliability)
+             for s in range(0, t, chunk)]
+    out = pool_map(pool, _chamfer_run, tasks)
+    chamfer = np.concatenate([np.zeros(0), *(c for c, _ in out)])
+    if reliability is None:
+        return chamfer, None
+    return chamfer, np.concatenate([np.zeros((0, 24)), *(r for _, r in out)])
 
 
-def _chamfer_run(verts: np.ndarray, faces: np.ndarray, points: Sequence[np.ndarray],
+def _chamfer_run(model: tuple[str, str, str], params: BodyParams, points: Sequence[np.ndarray],
                  views: Sequence[CameraView], present: np.ndarray,
-                 occluders: tuple[np.ndarray, np.ndarray] | None, samples: int, first: int
-                 ) -> np.ndarray:
+                 occluders: tuple[np.ndarray, np.ndarray] | None, samples: int, first: int,
+                 fallback: np.ndarray, reliability: SessionFitConfig | None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`_chamfers` of frames ``first, first + 1, ...`` (a pool task)."""
+    body = cached_model(*model)
+    verts = pose_body(body, params)[0]
+    low = verts.astype(np.float32)
     out = np.full(len(verts), np.nan)
     scene = occluder_scene(occluders) if occluders is not None else None
     for k, p in enumerate(points):
         seen = [v for v, ok in zip(views, present[k], strict=True) if ok]
         if len(p) and seen:
-            out[k] = surface_distances(verts[k], faces, p, visible_from=seen, occluders=scene,
-                                       samples=samples, seed=first + k).chamfer
-    return out
+            out[k] = surface_distances(low[k], body.faces, p, visible_from=seen,
+                                       occluders=scene, samples=samples, seed=first + k).chamfer
+    if reliability is None:
+        return out, None
+    out[fallback] = np.nan
+    seg = body.weights.cpu().numpy().argmax(1)
+    return out, _reliability_run(verts, body.faces, seg, points, views,
+                                 _frame_weights(out, fallback, reliability), reliability)
 
 
 # --------------------------------------------------------------------------- clouds
@@ -672,13 +692,21 @@ def fit_reliability(params: BodyParams, clouds: Sequence[FusedCloud], chamfer: n
     t = params.num_frames
     verts = pose_body(model, params)[0] if vertices is None else np.asarray(vertices, np.float64)
     seg = model.weights.cpu().numpy().argmax(1)  # (V,) the joint moving each vertex most
-    ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
-    frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
-    frame_w[np.asarray(fallback, bool)] = 0.0
+    frame_w = _frame_weights(chamfer, fallback, cfg)
     pts = [cloud_arrays(c)[0] for c in clouds]
     tasks = [(verts[s:s + chunk], np.asarray(model.faces), seg, pts[s:s + chunk], views,
               frame_w[s:s + chunk], cfg) for s in range(0, t, chunk)]
     return np.concatenate([np.zeros((0, 24)), *pool_map(pool, _reliability_run, tasks)])
+
+
+def _frame_weights(chamfer: np.ndarray, fallback: np.ndarray, cfg: SessionFitConfig
+                   ) -> np.ndarray:
+    """(T,) a fit's weight from its chamfer (1 at ``good_chamfer``, 0 at ``bad_chamfer`` or
+    NaN) and 0 for a fallback frame."""
+    ch = np.nan_to_num(np.asarray(chamfer, np.float64), nan=np.inf)
+    frame_w = np.clip((cfg.bad_chamfer - ch) / (cfg.bad_chamfer - cfg.good_chamfer), 0.0, 1.0)
+    frame_w[np.asarray(fallback, bool)] = 0.0
+    return frame_w
 
 
 def _reliability_run(verts: np.ndarray, faces: np.ndarray, seg: np.ndarray,
@@ -842,14 +870,11 @@ def fit_session(session_dir: str | os.PathLike, *,
         occluders = (apply_transform(np.asarray(chair.world_from_object, np.float64),
                                      np.asarray(chair.vertices, np.float64)),
                      np.asarray(chair.faces))
-    measure = cached_model(cfg.error_model, bcfg.device, bcfg.dtype)
-    fit_verts, _ = pose_body(measure, fit.params)
+    measure = (cfg.error_model, bcfg.device, bcfg.dtype)
     present = ss.kinect.frame_table[rows[keys]] >= 0
-    fit_chamfer = _chamfers(fit_verts, measure.faces, clouds, views, present, occluders,
-                            bcfg.error_samples, pool)
-    fit_chamfer[fit.fallback] = np.nan
-    rel = fit_reliability(fit.params, clouds, fit_chamfer, fit.fallback, views, measure, cfg,
-                          vertices=fit_verts, pool=pool)
+    fit_chamfer, rel = _chamfers(measure, fit.params, clouds, views, present, occluders,
+                                 bcfg.error_samples, pool, fallback=fit.fallback,
+                                 reliability=cfg)
     if (rel > 0).any():
         align = refine_alignment(fit.joints, imu_k.joint_positions, rel)
     else:
@@ -892,8 +917,8 @@ def fit_session(session_dir: str | os.PathLike, *,
                                body_pose=fused.body_pose, transl=fused.transl)[0]
     joints = joints.cpu().numpy().astype(np.float64)
     fused_chamfer = _spread_rows(
-        _chamfers(pose_body(measure, fused.frames(keys))[0], measure.faces, clouds, views,
-                  present, occluders, bcfg.error_samples, pool), keys, len(rows), np.nan)
+        _chamfers(measure, fused.frames(keys), clouds, views, present, occluders,
+                  bcfg.error_samples, pool)[0], keys, len(rows), np.nan)
     seconds["errors"] += time.perf_counter() - t0
     for m in warnings:
         log.warning("%s", m)

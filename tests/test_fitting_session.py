@@ -106,17 +106,15 @@ def test_body_accuracy_against_ground_truth(sim, name):
     e_imu = mpjpe(imu_joints, true_joints).mean()
     e_fit = mpjpe(sf.fit.joints, true_joints).mean()
     e_fused = mpjpe(sf.joints, true_joints).mean()
-    from couch.fitting.session import pose_body as posed
 
     model = cached_model("couch-body")
     true_params = BodyParams.from_processed(truth).frames(rows)
     true_verts, _ = _posed(true_params)
     # the true body measured as the fits are: on the error model's surface
-    measure = cached_model(SessionFitConfig().error_model)
-    c_true = _chamfers(posed(measure, true_params)[0], measure.faces, sf.clouds, sf.views,
-                       sf.sync.kinect.frame_table[sf.rows] >= 0,
+    c_true = _chamfers((SessionFitConfig().error_model, "cpu", "float32"), true_params,
+                       sf.clouds, sf.views, sf.sync.kinect.frame_table[sf.rows] >= 0,
                        (chair.vertices @ chair.world_from_object[:3, :3].T
-                        + chair.world_from_object[:3, 3], chair.faces), 4000)
+                        + chair.world_from_object[:3, 3], chair.faces), 4000)[0]
     both = np.isfinite(c_true) & np.isfinite(sf.fit_chamfer) & np.isfinite(sf.chamfer)
     fps = 1.0 / sf.sync.kinect.period_s
     jit = jitter(sf.joints, fps).mean() / jitter(true_joints, fps).mean()
