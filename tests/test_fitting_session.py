@@ -333,6 +333,22 @@ def test_a_pool_of_workers_gives_the_same_fit(sim):
     assert np.array_equal(sf.joints, ref.joints)
 
 
+def test_fit_reliability_gives_the_pipelines_weights(sim):
+    """``fit_reliability`` on session a's fits, chamfers and clouds (in runs of 7 frames on
+    two workers) gives exactly the weights ``fit_session`` computed with the chamfers, some
+    full and some partial."""
+    from couch.fitting.session import fit_reliability
+    from couch.pool import spawn_pool
+
+    sf = sim("a")["sf"]
+    model = cached_model(SessionFitConfig().error_model)
+    with spawn_pool(2) as pool:
+        rel = fit_reliability(sf.fit.params, sf.clouds, sf.fit_chamfer, sf.fit.fallback,
+                              sf.views, model, pool=pool, chunk=7)
+    assert np.array_equal(rel, sf.reliability)
+    assert (rel == 1).any() and ((rel > 0) & (rel < 1)).any()
+
+
 def test_segmenting_a_few_captures_holds_only_their_depth(sim):
     """``segment_recording`` without a chair on session a (50 captures a camera, so the static
     chair is found from every capture's foreground): asking for three captures (by a function
