@@ -523,21 +523,19 @@ def _fit(clouds: Sequence[Any], init: BodyParams, cameras: np.ndarray | None,
     iters = sum(s.iters for s in stages)
     chunks = [fitted[a:a + chunk] for a in range(0, len(fitted), chunk)]
     start = time.perf_counter()
+    def task(idx: np.ndarray) -> tuple[PaddedClouds, BodyParams, Any, BodyFitConfig, np.ndarray]:
+        return (pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed, frame_ids=idx),
+                init.frames(idx), cams, cfg, idx)
+
     if pool is not None and len(chunks) > 1:
         # the chunks are independent (every term is per frame, or couples a chunk's frames
         # only): each on a worker, fitted exactly as here
-        tasks = [(pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed, frame_ids=idx),
-                  init.frames(idx), cams, cfg, idx) for idx in chunks]
-        out = pool_map(pool, _fit_chunk, tasks, desc="body fit" if progress else None,
-                       unit="chunk")
+        out = pool_map(pool, _fit_chunk, [task(idx) for idx in chunks],
+                       desc="body fit" if progress else None, unit="chunk")
     else:
-        out = []
         with tqdm(total=iters * len(chunks), disable=not progress, desc="body fit",
                   unit="it") as bar:
-            for idx in chunks:
-                padded = pad_clouds([clouds[i] for i in idx], cfg.points, cfg.seed,
-                                    frame_ids=idx)
-                out.append(optimise(stages, padded, init.frames(idx), cams, cfg, idx, bar)[:2])
+            out = [optimise(stages, *task(idx), bar)[:2] for idx in chunks]
     aa = np.concatenate([np.zeros((0, 24, 3), np.float32), *(a for a, _ in out)])
     tr = np.concatenate([np.zeros((0, 3), np.float32), *(t for _, t in out)])
     seconds = time.perf_counter() - start
