@@ -1,4 +1,4 @@
-"""Rigid transforms: inverse, Kabsch fit, averaging, look-at; vertex normals."""
+"""Rigid transforms: inverse, Kabsch fit, averaging, look-at; vertex normals; surface samples."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from couch.geometry import (
     invert_transform,
     look_at,
     make_transform,
+    sample_surface,
     transform_distance,
     vertex_normals,
 )
@@ -87,3 +88,24 @@ def test_vertex_normals_of_a_sphere_and_a_batch():
     assert nb.shape == batch.shape
     np.testing.assert_allclose(nb, np.einsum("bkij,vj->bkvi", rot, n), atol=1e-12)
     assert vertex_normals(v.astype(np.float32), f).dtype == np.float32
+
+
+def test_surface_samples_lie_on_the_faces_by_area_with_outward_normals():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 4.0))  # 28 m^2
+    pts, normals = sample_surface(box.vertices, box.faces, 20000, seed=3)
+    assert pts.shape == normals.shape == (20000, 3)
+    assert np.abs(box.nearest.signed_distance(pts[:500])).max() < 1e-9  # on the surface
+    # each sample's normal is its face's: the axis it lies at the box's half extent on
+    axis = np.abs(normals).argmax(1)
+    assert np.allclose(np.abs(normals).max(1), 1.0)
+    half = np.array([0.5, 1.0, 2.0])
+    assert np.allclose(np.abs(pts[np.arange(len(pts)), axis]), half[axis])
+    assert np.all(pts[np.arange(len(pts)), axis] * normals[np.arange(len(pts)), axis] > 0)
+    # area-uniform: the pairs of faces normal to x, y, z hold 16, 8 and 4 of the 28 m^2
+    share = np.bincount(axis, minlength=3) / len(pts)
+    assert np.allclose(share, [16 / 28, 8 / 28, 4 / 28], atol=0.01)
+    again = sample_surface(box.vertices, box.faces, 20000, seed=3)
+    assert np.array_equal(again[0], pts) and np.array_equal(again[1], normals)
+    assert not np.array_equal(sample_surface(box.vertices, box.faces, 20000, seed=4)[0], pts)
