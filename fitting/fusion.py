@@ -15,7 +15,7 @@ of one torch optimisation) so the motion
   constant or linearly drifting bias is free), so an occluded stretch keeps the IMU's motion with
   the bias measured around it, the fits' per-frame noise cannot get in, and δ stays small
   (``sigma_imu_deg``) where nothing else decides it; an optional per-frame residual
-  (``sigma_frame_deg``, off by default) lets the fits correct the IMU frame by frame, and an
+  (``sigma_frame_deg``, off by default) lets the fits correct the IMU frame by frame, and a
   constant rotation per segment (``sigma_misalign_deg``; 0 turns it off) models the
   suit's sensor-to-segment calibration, ``R = C_parentᵀ · R_imu · C_j · exp(δ)``, whose effect
   on a local rotation changes with the posture where a bias of the local rotation does not. The
