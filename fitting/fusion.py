@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -134,8 +135,15 @@ class FusionConfig:
     """Put contact targets on the floor (else only keep them above it)."""
     rounds: int = 3
     """Rounds of L-BFGS; the foot targets are recomputed from the motion before each."""
-    iters: int = 100
+    iters: int = 50
     """L-BFGS iterations per round."""
+    precondition: bool = True
+    """Scale the optimiser's variables by the square root of their curvature (Jacobi; each
+    estimated once before the first round by finite differences of the gradient, about 30
+    gradient evaluations). The calibration rotations of the legs, which move every planted
+    foot, are ~10⁴ times stiffer than those of the hands and L-BFGS's short history cannot
+    learn that: on a 30 s session the fused joints ended 1.5 mm (mean) from the optimum after
+    3 x 100 iterations without it, 0.7 mm after 3 x 50 with it."""
     device: str = "cpu"
     """Device of the default model (the optimisation runs in float64 whatever the model's)."""
     reference_fps: float = 30.0
@@ -170,6 +178,63 @@ def _spline_basis(t: int, spacing: int) -> np.ndarray:
     x = np.abs(pos[:, None] - np.arange(-1, n + 2)[None])
     return np.where(x < 1, (4 - 6 * x ** 2 + 3 * x ** 3) / 6,
                     np.where(x < 2, (2 - x).clip(0) ** 3 / 6, 0.0))
+
+
+def _diagonal_curvature(gradient: Callable[[], list[torch.Tensor]], params: list[torch.Tensor],
+                        knots: torch.Tensor, knots_t: torch.Tensor, misalign: torch.Tensor,
+                        parents: np.ndarray, *, step: float = 1e-4, probes: int = 2
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Estimates of the Hessian's diagonal of the loss whose gradient over ``params`` (the
+    variables, holding the three named ones at scale 1) ``gradient`` returns: the difference of
+    the gradient a ``step`` along a probe direction and at the current values (one gradient
+    evaluation a probe; the variables are restored after each).
+
+    * The rotation knots (K,24,3) and translation knots (K,3): ``probes`` random ±1 directions
+      over both (Hutchinson's estimator), averaged over each joint's K·3 knots and over the
+      translation's, where the off-diagonal terms' noise averages out: (1,24,1) and ().
+    * The calibration rotations (24,3): one direction per depth of the skeleton and axis, the
+      joints of that depth together. No term reads two joints of one depth (a joint's position
+      and orientation depend on its ancestors and itself, its rotation step on itself and its
+      parent), so each direction reads each of its joints' curvature exactly: (24,3). Ones
+      when they are not optimised.
+    """
+    g0 = gradient()
+    where = {id(p): i for i, p in enumerate(params)}
+
+    def along(direction: dict[int, torch.Tensor]) -> list[torch.Tensor]:
+        with torch.no_grad():
+            saved = [p.clone() for p in params]
+            for p in params:
+                if id(p) in direction:
+                    p.add_(step * direction[id(p)])
+        g = gradient()
+        with torch.no_grad():
+            for p, v in zip(params, saved, strict=True):
+                p.copy_(v)
+        return [(a - b) / step for a, b in zip(g, g0, strict=True)]
+
+    gen = torch.Generator().manual_seed(0)
+    c_knots = torch.zeros(1, knots.shape[1], 1, dtype=knots.dtype, device=knots.device)
+    c_t = torch.zeros((), dtype=knots.dtype, device=knots.device)
+    for _ in range(probes):
+        signs = [(2 * torch.randint(0, 2, p.shape, generator=gen) - 1).to(p) for p in (knots,
+                                                                                       knots_t)]
+        hv = along({id(knots): signs[0], id(knots_t): signs[1]})
+        c_knots += (hv[where[id(knots)]] * signs[0]).mean((0, 2), keepdim=True) / probes
+        c_t += (hv[where[id(knots_t)]] * signs[1]).mean() / probes
+    c_mis = torch.ones_like(misalign)
+    if id(misalign) in where:
+        depth = np.zeros(len(parents), int)
+        for j in range(1, len(parents)):  # parents precede their children
+            depth[j] = depth[parents[j]] + 1
+        for level in range(depth.max() + 1):
+            joints = np.flatnonzero(depth == level)
+            for axis in range(3):
+                direction = torch.zeros_like(misalign)
+                direction[joints, axis] = 1.0
+                hv = along({id(misalign): direction})[where[id(misalign)]]
+                c_mis[joints, axis] = hv[joints, axis]
+    return c_knots, c_t, c_mis
 
 
 def contact_runs(contact: np.ndarray) -> list[tuple[int, int, int]]:
@@ -309,6 +374,8 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     basis_np = _spline_basis(t, knot_frames)
     basis = tensor(basis_np)
     n_knots = basis.shape[1]
+    # the optimiser's variables are the knots and calibration rotations times a scale each
+    # (``_precondition``); these are the unscaled values
     knots = torch.zeros(n_knots, 24, 3, dtype=dt, device=dev, requires_grad=True)
     eps = torch.zeros(t, 24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_deg > 0)
     misalign = torch.zeros(24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_misalign_deg > 0)
@@ -317,10 +384,19 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     # carried to ~0.5 mm in the fused joints
     knots_t = tensor(np.linalg.lstsq(basis_np, dtransl0, rcond=None)[0]).requires_grad_(True)
     eps_t = torch.zeros(t, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_m > 0)
+    scaled = [knots, knots_t, misalign]
+    scales = [torch.ones(1, 24, 1, dtype=dt, device=dev), torch.ones((), dtype=dt, device=dev),
+              torch.ones(24, 3, dtype=dt, device=dev)]
     params = [p for p in (knots, eps, knots_t, eps_t, misalign) if p.requires_grad]
     parents = model.parents.cpu().numpy()
 
-    def corrections() -> tuple[torch.Tensor, torch.Tensor]:
+    def unscaled() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The spline knots (K,24,3), translation knots (K,3) and calibration rotations (24,3)."""
+        k, k_t, m = (p / s for p, s in zip(scaled, scales, strict=True))
+        return k, k_t, m
+
+    def corrections(knots: torch.Tensor, knots_t: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
         delta = torch.einsum("tk,kjc->tjc", basis, knots) + eps
         return delta, basis @ knots_t + eps_t
 
@@ -340,26 +416,27 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     foot_joints = np.array([left, left, right, right])  # FOOT_KEYPOINTS order: L, L, R, R
     foot_rel = tensor(rel[:, foot_joints].mean(-1))
 
-    def imu_rotations() -> torch.Tensor:
+    def imu_rotations(misalign: torch.Tensor) -> torch.Tensor:
         """(T,24,3,3) the IMU's local rotations with each segment's constant calibration
         error taken out: ``C_parentᵀ · R_imu · C_j`` (the root has no parent)."""
-        if not misalign.requires_grad:
+        if cfg.sigma_misalign_deg <= 0:
             return r_imu
         c = axis_angle_to_matrix(misalign)  # (24,3,3)
         c_parent = torch.cat([torch.eye(3, dtype=dt, device=dev)[None], c[parents[1:]]])
         return c_parent.transpose(-1, -2) @ r_imu @ c
 
-    def forward() -> tuple[torch.Tensor, Any]:
-        delta, dtransl = corrections()
-        local = imu_rotations() @ axis_angle_to_matrix(delta)
-        return local, skin.pose(local, rest_joints, t_base + dtransl)
+    def forward(knots: torch.Tensor, knots_t: torch.Tensor, misalign: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, Any]:
+        delta, dtransl = corrections(knots, knots_t)
+        local = imu_rotations(misalign) @ axis_angle_to_matrix(delta)
+        return delta, local, skin.pose(local, rest_joints, t_base + dtransl)
 
     def targets() -> tuple[torch.Tensor, torch.Tensor]:
         """Each contact run's foot target and the frames held to it: the IMU's contact flags
         where the current motion's foot point is slow (a flag's first or last frame often
         catches the heel rising or landing, more so at low frame rates)."""
         with torch.no_grad():
-            _, posed = forward()
+            _, _, posed = forward(*unscaled())
             feet = skin.vertices(posed, v_shaped, foot_index)
         f = feet.cpu().numpy()
         step = np.zeros(f.shape[:2])
@@ -381,14 +458,14 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         return tgt, tensor(held)
 
     def loss_fn(tgt: torch.Tensor, contact: torch.Tensor) -> torch.Tensor:
-        local, posed = forward()
+        knots, knots_t, misalign = unscaled()
+        delta, local, posed = forward(knots, knots_t, misalign)
         joints = posed.joints
         # Kinect data terms, reliability-weighted per frame and joint
         pos = (joints - kin_joints).square().sum(-1) / cfg.sigma_kinect_m ** 2
         rot = (posed.orient - kin_orient).square().sum((-1, -2)) / 2.0 / s_kin_rot ** 2
         loss = (w_rel * (pos + rot)).sum()
         # IMU: small, slowly changing correction
-        delta, _ = corrections()
         loss = loss + delta.square().sum() / s_imu ** 2
         loss = loss + _second_difference(knots).square().sum() / s_bias ** 2
         if cfg.sigma_frame_deg > 0:
@@ -412,6 +489,20 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
         below = torch.clamp(cfg.floor_height - feet[..., 1], min=0.0)
         return (loss + below.square().sum() / cfg.sigma_floor_m ** 2) / t
 
+    if cfg.precondition:
+        tgt, held = targets()
+
+        def gradient() -> list[torch.Tensor]:
+            return list(torch.autograd.grad(loss_fn(tgt, held), params))
+
+        curvatures = _diagonal_curvature(gradient, params, knots, knots_t, misalign, parents)
+        ref = curvatures[0].max()
+        if ref > 0:
+            with torch.no_grad():
+                # Jacobi: each variable's curvature that of the stiffest joint's knots
+                for p, s, c in zip(scaled, scales, curvatures, strict=True):
+                    s.copy_((c.clamp(min=1e-3 * ref) / ref).sqrt())
+                    p.mul_(s)
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iters,
                             history_size=20,
                             line_search_fn="strong_wolfe", tolerance_grad=1e-9,
@@ -427,8 +518,9 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
 
         opt.step(closure)
     with torch.no_grad():
-        local, _ = forward()
+        knots, knots_t, misalign = unscaled()
+        _, local, _ = forward(knots, knots_t, misalign)
         aa = matrix_to_axis_angle(local).double().cpu().numpy()
-        transl = (t_base + corrections()[1]).double().cpu().numpy()
+        transl = (t_base + corrections(knots, knots_t)[1]).double().cpu().numpy()
     return BodyParams(aa[:, 0], aa[:, 1:].reshape(t, 69), transl, kinect_fit.betas)
 
