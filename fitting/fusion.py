@@ -36,7 +36,10 @@ of one torch optimisation) so the motion
 
 Every term is a squared residual over a scale (metres, degrees), summed over frames and divided
 by T; the optimiser is L-BFGS over the whole sequence, in float64 (a float64 copy of a float32
-model is made: in float32 the line search stalls on these stiff terms).
+model is made: in float32 the line search stalls on these stiff terms), on variables scaled by
+the square root of their curvature (``precondition``): the terms' stiffnesses span four decades
+(a leg's calibration rotation moves every planted foot point, a hand's only the hand), which
+L-BFGS's short history does not learn.
 
 Not done here: the fits' reliability must come from the caller (e.g. per-frame chamfer, point
 count, the fit's ``fallback`` flags); the fusion runs on the body model it is given (coarse by
@@ -211,7 +214,7 @@ def _diagonal_curvature(gradient: Callable[[], list[torch.Tensor]], params: list
         with torch.no_grad():
             for p, v in zip(params, saved, strict=True):
                 p.copy_(v)
-        return [(a - b) / step for a, b in zip(g, g0, strict=True)]
+        return [(a - b).detach() / step for a, b in zip(g, g0, strict=True)]
 
     gen = torch.Generator().manual_seed(0)
     c_knots = torch.zeros(1, knots.shape[1], 1, dtype=knots.dtype, device=knots.device)

@@ -320,3 +320,67 @@ def test_constant_misalignment_carries_into_an_unseen_posture(model):
     for k in range(2):
         assert errors[5.0][k] < 0.8 * errors[0.0][k]
         assert errors[5.0][k] < errors["imu"][k]
+
+
+def test_curvature_probes_read_the_hessian_diagonal(model):
+    """``_diagonal_curvature`` on a quadratic loss with the fusion's structure: knots coupled
+    to each other and to every calibration rotation, and the calibration rotations coupled
+    along the skeleton (a joint with its ancestors, the three axes of a joint together) but
+    never across one depth. Its per-depth probes must read the calibration rotations'
+    diagonal exactly, its random probes each joint's mean knot curvature closely."""
+    from couch.fitting.fusion import _diagonal_curvature
+
+    parents = model.parents.cpu().numpy()
+    rng = np.random.default_rng(0)
+    knots = torch.zeros(20, 24, 3, dtype=torch.float64, requires_grad=True)
+    knots_t = torch.zeros(20, 3, dtype=torch.float64, requires_grad=True)
+    misalign = torch.zeros(24, 3, dtype=torch.float64, requires_grad=True)
+    params = [knots, knots_t, misalign]
+    n = sum(p.numel() for p in params)
+    ancestor = np.zeros((24, 24), bool)
+    for j in range(24):
+        k = j
+        while k >= 0:
+            ancestor[j, k] = ancestor[k, j] = True
+            k = parents[k]
+    coupled = np.ones((n, n), bool)
+    m0 = n - 72
+    coupled[m0:, m0:] = np.kron(ancestor, np.ones((3, 3), bool))
+    # a Hessian with that pattern, stiffnesses spread over four decades as in the fusion
+    a = rng.normal(size=(n, n)) * coupled
+    h = a @ a.T * coupled / n + np.diag(10.0 ** rng.uniform(0, 4, n))
+    hess = torch.as_tensor(h)
+
+    def gradient() -> list[torch.Tensor]:
+        x = torch.cat([p.reshape(-1) for p in params])
+        g = hess @ x + 1.0
+        return [part.view_as(p) for part, p in zip(g.split([p.numel() for p in params]),
+                                                   params, strict=True)]
+
+    c_knots, c_t, c_mis = _diagonal_curvature(gradient, params, knots, knots_t, misalign,
+                                              parents, probes=4)
+    diag = np.diag(h)
+    np.testing.assert_allclose(c_mis.numpy(), diag[m0:].reshape(24, 3), rtol=1e-6)
+    want = diag[:knots.numel()].reshape(20, 24, 3).mean((0, 2))
+    np.testing.assert_allclose(c_knots.numpy().ravel(), want, rtol=0.2)
+    assert abs(float(c_t) - diag[knots.numel():m0].mean()) < 0.2 * diag[knots.numel():m0].mean()
+    assert all(float(p.detach().abs().max()) == 0.0 for p in params)  # restored
+
+
+def test_preconditioning_gets_closer_to_the_optimum(model, truth):
+    """3 x 50 iterations on the Jacobi-scaled variables end closer to the optimum (here 3 x
+    400 iterations without scaling) than 3 x 50 without. Measured when written: 0.49 against
+    1.15 mm (mean over the joints and frames)."""
+    params, _, _, contact = truth
+    kinect, reliability = _kinect(params, seed=1)
+    imu = _biased_imu(params, seed=2)
+
+    def joints(config: FusionConfig) -> np.ndarray:
+        return _posed(model, fuse_motion(kinect, imu, reliability, contact, model, config))[0]
+
+    optimum = joints(FusionConfig(precondition=False, iters=400))
+    off = {pc: np.linalg.norm(joints(FusionConfig(precondition=pc, iters=50)) - optimum,
+                              axis=-1).mean() for pc in (True, False)}
+    print(f"\nfused joints from the optimum, mm: preconditioned {1000 * off[True]:.2f}, "
+          f"not {1000 * off[False]:.2f}")
+    assert off[True] < 0.7 * off[False]
