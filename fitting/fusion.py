@@ -377,8 +377,8 @@ def fuse_motion(kinect_fit: BodyParams, imu_pose: Any, reliability: Any, foot_co
     basis_np = _spline_basis(t, knot_frames)
     basis = tensor(basis_np)
     n_knots = basis.shape[1]
-    # the optimiser's variables are the knots and calibration rotations times a scale each
-    # (``_precondition``); these are the unscaled values
+    # the optimiser's variables: the knots and calibration rotations, each times its scale
+    # (1 until ``precondition`` sets them), so ``unscaled()`` gives their values
     knots = torch.zeros(n_knots, 24, 3, dtype=dt, device=dev, requires_grad=True)
     eps = torch.zeros(t, 24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_frame_deg > 0)
     misalign = torch.zeros(24, 3, dtype=dt, device=dev, requires_grad=cfg.sigma_misalign_deg > 0)

@@ -21,7 +21,8 @@ Measured when written (printed with ``-s``; seeds 1 / 3): MPJPE Kinect 10.1 / 7.
 frames 2.9 / 2.8), IMU 5.5 / 4.4, fused 1.52 / 1.54-1.58 cm; jitter truth 10.3 m/s³, fused ratio
 1.02-1.04; foot skate in contact Kinect ~55 mm/frame, fused 0.20-0.32 mm/frame, contact height
 error <= 1.5 mm; per-joint case, right arm error in its occluded frames: Kinect 52, IMU 3.6,
-fused 1.3 cm. Each fusion ~1-2 s; the file ~8 s.
+fused 1.3 cm. Each fusion ~1-2 s; the file ~30 s (the preconditioning test's optimum, 3 x 400
+iterations, ~12 s).
 """
 
 from __future__ import annotations
