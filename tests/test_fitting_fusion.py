@@ -21,8 +21,8 @@ Measured when written (printed with ``-s``; seeds 1 / 3): MPJPE Kinect 10.1 / 7.
 frames 2.9 / 2.8), IMU 5.5 / 4.4, fused 1.52 / 1.54-1.58 cm; jitter truth 10.3 m/s³, fused ratio
 1.02-1.04; foot skate in contact Kinect ~55 mm/frame, fused 0.20-0.32 mm/frame, contact height
 error <= 1.5 mm; per-joint case, right arm error in its occluded frames: Kinect 52, IMU 3.6,
-fused 1.3 cm. Each fusion ~1-2 s; the file ~30 s (the preconditioning test's optimum, 3 x 400
-iterations, ~12 s).
+fused 1.3 cm. Each fusion ~1-2 s; the file ~50 s (the preconditioning test's optimum, 3 x 200
+iterations, ~8 s).
 """
 
 from __future__ import annotations
@@ -370,8 +370,8 @@ def test_curvature_probes_read_the_hessian_diagonal(model):
 
 def test_preconditioning_gets_closer_to_the_optimum(model, truth):
     """3 x 50 iterations on the Jacobi-scaled variables end closer to the optimum (here 3 x
-    400 iterations without scaling) than 3 x 50 without. Measured when written: 0.49 against
-    1.15 mm (mean over the joints and frames)."""
+    200 iterations without scaling, 0.08 mm from 3 x 400) than 3 x 50 without. Measured when
+    written: 0.49 against 1.16 mm (mean over the joints and frames)."""
     params, _, _, contact = truth
     kinect, reliability = _kinect(params, seed=1)
     imu = _biased_imu(params, seed=2)
@@ -379,7 +379,7 @@ def test_preconditioning_gets_closer_to_the_optimum(model, truth):
     def joints(config: FusionConfig) -> np.ndarray:
         return _posed(model, fuse_motion(kinect, imu, reliability, contact, model, config))[0]
 
-    optimum = joints(FusionConfig(precondition=False, iters=400))
+    optimum = joints(FusionConfig(precondition=False, iters=200))
     off = {pc: np.linalg.norm(joints(FusionConfig(precondition=pc, iters=50)) - optimum,
                               axis=-1).mean() for pc in (True, False)}
     print(f"\nfused joints from the optimum, mm: preconditioned {1000 * off[True]:.2f}, "
