@@ -86,6 +86,7 @@ __all__ = [
     "SegmentationConfig",
     "SegmentationError",
     "background_from_recordings",
+    "camera_foreground",
     "camera_points",
     "chair_pixels",
     "depth_edges",
@@ -438,9 +439,38 @@ def foreground(depth_mm: np.ndarray, background: BackgroundModel, calib: KinectC
                        config or SegmentationConfig())
 
 
+def camera_foreground(background: BackgroundModel, calib: KinectCalibration,
+                      world_from_depth: np.ndarray, config: SegmentationConfig | None = None,
+                      *, reliable: bool = True
+                      ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """:func:`foreground` for many frames of one camera: its per-pixel constants computed
+    once (a tenth of a frame's cost each time otherwise).
+
+    Args:
+        background, calib, world_from_depth, config: as :func:`foreground`.
+        reliable: also compute the ``reliable`` pixels; False: that array comes back all False
+            (the silhouette alone costs ~30 % less: no flying-pixel test, no opening).
+
+    Returns:
+        ``fg(depth_mm)`` → ``(mask, reliable)`` of one (H,W) uint16 frame, as :func:`foreground`.
+    """
+    view = _View.of(calib, world_from_depth)
+    cfg = config or SegmentationConfig()
+
+    def fg(depth_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if depth_mm.shape != background.depth.shape:
+            raise SegmentationError(f"depth image {depth_mm.shape} does not match the "
+                                    f"background {background.depth.shape}")
+        return _foreground(depth_mm, background, view, cfg, reliable)
+
+    return fg
+
+
 def _foreground(depth_mm: np.ndarray, background: BackgroundModel, view: _View,
-                cfg: SegmentationConfig) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`foreground` with the camera's constants precomputed."""
+                cfg: SegmentationConfig, reliable: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`foreground` with the camera's constants precomputed; ``reliable`` False leaves
+    the second array all False (see :func:`camera_foreground`)."""
     z = depth_mm.astype(np.float32) * np.float32(1e-3)
     valid = depth_mm > 0
     margin = np.float32(cfg.margin) + np.float32(cfg.margin_per_m2) * z * z
@@ -459,20 +489,22 @@ def _foreground(depth_mm: np.ndarray, background: BackgroundModel, view: _View,
         region = cv2.dilate(region, cross) & allowed
     # the rest only where the grown seeds are (with room for the morphology below)
     mask = np.zeros(depth_mm.shape, dtype=bool)
-    reliable = np.zeros(depth_mm.shape, dtype=bool)
+    rel_out = np.zeros(depth_mm.shape, dtype=bool)
     box = _box(region, max(cfg.rim_px, cfg.open_px) + 2)
     if box is None:
-        return mask, reliable
+        return mask, rel_out
     crop = view.crop(box)
     d = depth_mm[box]
     m = _keep_components(region.view(bool)[box], d, crop, cfg, depth_mm.size)
-    # what a point cloud may use: no depth-edge (flying) pixels, no thin boundary noise. The
-    # silhouette keeps both: opening it costs more IoU at thin limbs than the noise does.
-    rel = m & seeds[box] & ~flying_pixels(d, cfg.edge_ratio, cfg.edge_support_ratio,
-                                           cfg.edge_support)
-    if cfg.open_px > 1:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.open_px, cfg.open_px))
-        rel = cv2.morphologyEx(rel.view(np.uint8), cv2.MORPH_OPEN, kernel).view(bool)
+    if reliable:
+        # what a point cloud may use: no depth-edge (flying) pixels, no thin boundary noise.
+        # The silhouette keeps both: opening it costs more IoU at thin limbs than the noise does.
+        rel = m & seeds[box] & ~flying_pixels(d, cfg.edge_ratio, cfg.edge_support_ratio,
+                                               cfg.edge_support)
+        if cfg.open_px > 1:
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.open_px, cfg.open_px))
+            rel = cv2.morphologyEx(rel.view(np.uint8), cv2.MORPH_OPEN, kernel).view(bool)
+        rel_out[box] = rel
     if cfg.rim_px > 0:
         # No return where the room gave one: something is in front of it. Next to the
         # foreground that is its rim, seen at too grazing an angle for the sensor (or a dropout).
@@ -484,8 +516,7 @@ def _foreground(depth_mm: np.ndarray, background: BackgroundModel, view: _View,
         closed = cv2.morphologyEx(m8, cv2.MORPH_CLOSE, kernel).view(bool)
         m = m | ((d == 0) & ((near_mask & background.in_range[box]) | closed))
     mask[box] = m
-    reliable[box] = rel
-    return mask, reliable
+    return mask, rel_out
 
 
 @dataclasses.dataclass
@@ -835,7 +866,8 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
                 if collect and c.index in wanted:
                     depths[c.index] = depth
                 if foregrounds:
-                    fg = _foreground(depth, background, view, cfg)
+                    # the static count reads the silhouette alone
+                    fg = _foreground(depth, background, view, cfg, c.index in wanted)
                     np.add(count, fg[0], out=count)
                     if c.index in wanted:
                         fg_of[c.index] = fg

@@ -43,8 +43,8 @@ from couch.capture.segmentation import (
     BackgroundModel,
     SegmentationConfig,
     background_from_recordings,
+    camera_foreground,
     empty_room_recording,
-    foreground,
 )
 from couch.capture.session import session_files
 from couch.pool import Pool, pool_map
@@ -188,6 +188,8 @@ def camera_track(stream: KinectStream | str | os.PathLike, world_from_depth: np.
     band_pixels: list[np.ndarray] = []  # per frame: flat pixel indices of the top band
     cents, counts, skipped = [], [], []
     seen = np.isfinite(background.depth)
+    fg = camera_foreground(background, calib, pose, seg, reliable=cfg.top_pixels == "reliable")
+    has_ray = np.isfinite(rays[..., 0])
     nan3 = np.full(3, np.nan)
     for frame in tqdm(st, desc=f"signals {st.serial}", unit="frame", disable=not progress):
         stamps.append(frame.timestamp_us)
@@ -196,10 +198,10 @@ def camera_track(stream: KinectStream | str | os.PathLike, world_from_depth: np.
         if depth is None or not np.any(depth):
             skipped.append(f"{frame.source}: no usable depth")
         else:
-            seen |= depth > 0
-            mask, reliable = foreground(depth, background, calib, pose, seg)
-            sel = (mask if cfg.top_pixels == "mask" else reliable) & np.isfinite(rays[..., 0])
-            sel &= depth > 0
+            valid = depth > 0
+            seen |= valid
+            mask, reliable = fg(depth)
+            sel = (mask if cfg.top_pixels == "mask" else reliable) & has_ray & valid
             n = int(np.count_nonzero(sel))
             if n >= cfg.min_points:
                 z = depth[sel].astype(np.float64) * 1e-3

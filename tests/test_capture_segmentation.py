@@ -44,9 +44,11 @@ from couch.capture.segmentation import (
     ChairModel,
     SegmentationConfig,
     SegmentationError,
+    camera_foreground,
     chair_pixels,
     depth_edges,
     empty_room_recording,
+    foreground,
     mask_to_color,
     segment_recording,
 )
@@ -146,6 +148,30 @@ def test_segmenting_some_captures_gives_their_masks_unchanged(session):
     for f in part.frames:
         assert np.array_equal(f.person, by_stamp[f.timestamp_us].person)
         assert np.array_equal(f.chair, by_stamp[f.timestamp_us].chair)
+
+
+def test_camera_foreground_is_foreground_and_can_skip_the_reliable_pixels(session):
+    """:func:`camera_foreground` (the camera's constants computed once) gives
+    :func:`foreground`'s masks to the bit; without ``reliable`` the silhouette is the same and
+    the reliable pixels come back all False."""
+    if session["cfg"].seed != 5:
+        pytest.skip("one session is enough")
+    cam = session["info"]["cameras"][0]
+    seg = session["segs"][0]
+    pose = np.asarray(cam["world_from_depth"])
+    both = camera_foreground(seg.background, seg.calibration, pose)
+    silhouette = camera_foreground(seg.background, seg.calibration, pose, reliable=False)
+    people = 0
+    for f in seg.frames[::4]:
+        mask, reliable = foreground(f.depth_mm, seg.background, seg.calibration, pose)
+        m2, r2 = both(f.depth_mm)
+        m3, r3 = silhouette(f.depth_mm)
+        assert np.array_equal(mask, m2) and np.array_equal(reliable, r2)
+        assert np.array_equal(mask, m3) and not r3.any()
+        people += int(reliable.any())
+    assert people > 0
+    with pytest.raises(SegmentationError, match="does not match the background"):
+        both(np.zeros((4, 4), np.uint16))
 
 
 def test_masks_separate_person_and_chair(session):

@@ -27,6 +27,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+import couch.fitting.chair as chair_module
 from couch.capture.depth_bias import floor_depth_bias
 from couch.fitting.chair import (
     ChairClouds,
@@ -210,6 +211,36 @@ def test_floor_starts_alone_find_the_chair(sim, name):
     assert err["rot_deg"] < 1.0 and err["max_vertex_mm"] < 10.0
     # and nothing is found without either
     assert not global_candidates(clouds[best], scan, ChairConfig(ransac_seeds=0, yaw_step=0))[0]
+
+
+def test_screening_runs_on_a_capped_subset(sim, monkeypatch):
+    """The global candidates are screened on at most ``screen_max_points`` of an object's
+    downsampled points (a sofa's ~16k made the screening a third of the registration); the
+    best candidate, refined on the whole frame, lands where the uncapped screening's does."""
+    s = sim("sofa")
+    clouds = s["clouds"].clouds
+    frame = clouds[int(np.argmax([len(c) for c in clouds]))]
+    scan = load_scan(s["root"] / "chair_scan.obj")
+    sizes: list[int] = []
+    real = chair_module.track_frame
+
+    def spy(cloud, *args, **kwargs):
+        sizes.append(len(cloud.points))
+        return real(cloud, *args, **kwargs)
+
+    monkeypatch.setattr(chair_module, "track_frame", spy)
+    full, _ = global_candidates(frame, scan, ChairConfig(screen_max_points=0))
+    screened_full = [n for n in sizes if n < len(frame.points)]
+    sizes.clear()
+    capped, _ = global_candidates(frame, scan, ChairConfig(screen_max_points=300))
+    screened = [n for n in sizes if n < len(frame.points)]
+    print(f"screened on {max(screened_full)} points at most uncapped, {max(screened)} capped")
+    assert max(screened_full) > 300 and screened and max(screened) <= 300
+    truth = np.array(s["info"]["chair"]["world_from_scan"])
+    for cands in (full, capped):
+        err = _pose_errors(cands[0].pose, truth, scan.vertices)
+        assert err["rot_deg"] < 0.5 and err["max_vertex_mm"] < 5.0, err
+    assert _pose_errors(capped[0].pose, full[0].pose, scan.vertices)["max_vertex_mm"] < 1.0
 
 
 def test_same_result_twice(sim):
