@@ -755,11 +755,15 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
         if len(tgt_down.points) < 10:
             continue
         inits = _floor_starts(scan, cloud.points[idx], cfg)
+        # the feature matching is the same for every run (open3d's feature-matching RANSAC
+        # repeats it, about half of a run's time): match once, run RANSAC on the matches
+        matches = (reg.correspondences_from_features(src_feat, tgt_feat, False)
+                   if cfg.ransac_seeds > 0 else None)
         for k in range(cfg.ransac_seeds):
             # open3d's RANSAC draws from its own global generator: seed it per run
             o3d.utility.random.seed(cfg.seed + k)
-            res = reg.registration_ransac_based_on_feature_matching(
-                src_down, tgt_down, src_feat, tgt_feat, False, 1.5 * cfg.voxel,
+            res = reg.registration_ransac_based_on_correspondence(
+                src_down, tgt_down, matches, 1.5 * cfg.voxel,
                 reg.TransformationEstimationPointToPoint(False), 3,
                 [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
                  reg.CorrespondenceCheckerBasedOnDistance(1.5 * cfg.voxel)],
