@@ -140,7 +140,7 @@ class SegmentationConfig:
     static_fraction: float = 0.95  # foreground in this fraction of frames = static (chair)
     static_min_frames: int = 30  # too few frames cannot tell a still person from the chair
     static_max_frames: int = 300  # the share is counted on at most this many usable captures,
-    #                               evenly spaced (±1.3 % at 95 %: thousands tell no better)
+    #                               evenly spaced (a 95 % share to ±1.3 %; 0: on all of them)
     max_background_frames: int = 30  # a recording's own background: at most this many of its
     #                                  frames, evenly spaced
 
@@ -781,9 +781,9 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
         timestamps: device timestamps (µs) of the captures to segment, or a function of the
             (N,) int64 timestamps of the usable captures (in recording order) that returns
             them; None: every capture. The background (``include_session``) and the static
-            chair (no ``chair``; ``static_max_frames`` of them) still come from the usable
-            captures' depth whichever are asked for, and ``skipped``
-            lists the whole recording's unusable captures; ``frames`` holds only those asked
+            chair (no ``chair``; counted on at most ``static_max_frames`` captures) still come
+            from the usable captures, whichever are asked for, and ``skipped`` lists the whole
+            recording's unusable captures; ``frames`` holds only those asked
             for, and only their depth is held in memory (the recording is read two or three
             times instead).
 
@@ -849,8 +849,11 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
             step = max(1, -(-len(usable) // cfg.max_background_frames))  # ceil
             sampled = {i for i, _ in usable[::step]}
     static_needed = chair is None and len(usable) >= cfg.static_min_frames
-    counted = ({i for i, _ in usable[::max(1, -(-len(usable) // cfg.static_max_frames))]}
-               if static_needed and cfg.static_max_frames > 0 else {i for i, _ in usable})
+    counted: set[int] = set()  # the captures whose foreground the static chair is counted on
+    if static_needed:
+        step = (max(1, -(-len(usable) // cfg.static_max_frames)) if cfg.static_max_frames > 0
+                else 1)
+        counted = {i for i, _ in usable[::step]}
     view = _View.of(calib, world_from_depth)
     depths: dict[int, np.ndarray] = {}  # capture index -> depth, of the frames segmented
     fg_of: dict[int, tuple[np.ndarray, np.ndarray]] = {}
