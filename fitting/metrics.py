@@ -81,7 +81,8 @@ class SurfaceDistances:
     """Distances between one frame's fitted surface and its point cloud, metres.
 
     Attributes:
-        to_surface: (N,) each point's distance to the nearest point of the mesh.
+        to_surface: (N,) each point's distance to the nearest point of the mesh (of a subset
+            of the points with ``max_points``).
         to_points: (S,) distance from each surface sample to the nearest point (only samples
             the cameras could see, see :func:`surface_distances`).
     """
@@ -161,7 +162,8 @@ def occluder_scene(occluders: Occluders) -> o3d.t.geometry.RaycastingScene:
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
                       visible_from: np.ndarray | Sequence[CameraView] | None = None,
                       occluders: Occluders | None = None,
-                      samples: int = 4000, seed: int = 0) -> SurfaceDistances:
+                      samples: int = 4000, seed: int = 0,
+                      max_points: int | None = None) -> SurfaceDistances:
     """Point cloud ↔ mesh distances of one frame.
 
     Args:
@@ -175,7 +177,12 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
             hide parts of the body from the cameras, or their :func:`occluder_scene`; used only
             for the visibility.
         samples: surface samples (area-uniform) for the surface → points direction.
-        seed: sampling seed.
+        seed: sampling seed (of the samples and of the points' subset).
+        max_points: the points → surface direction on at most this many of the points (a
+            seeded random subset; None or 0: all). Its mean is then an estimate (to ~0.1 mm
+            for 4000 of a body's points), at a fraction of the cost of the exact distances;
+            the other direction always searches every point (fewer would leave the surface
+            farther from its nearest one).
 
     Returns:
         :class:`SurfaceDistances`.
@@ -185,8 +192,12 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
-    to_surface = (scene.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
-                  if len(pts) else np.zeros(0))
+    query = pts
+    if max_points and len(pts) > max_points:
+        query = pts[np.sort(np.random.default_rng([1, seed]).choice(len(pts), max_points,
+                                                                    replace=False))]
+    to_surface = (scene.compute_distance(o3d.core.Tensor(query)).numpy().astype(np.float64)
+                  if len(query) else np.zeros(0))
     sample, normal = sample_surface(v.astype(np.float64), f.astype(np.int64), samples, seed)
     if visible_from is not None:
         # a separate scene: adding the occluder to the body's would rebuild the body's BVH

@@ -401,7 +401,7 @@ def _spread(fit: BodyFit, keys: np.ndarray, filler: BodyParams) -> BodyFit:
 
 def _chamfers(model: tuple[str, str, str], params: BodyParams, clouds: Sequence[FusedCloud],
               views: Sequence[CameraView], present: np.ndarray,
-              occluders: tuple[np.ndarray, np.ndarray] | None, samples: int,
+              occluders: tuple[np.ndarray, np.ndarray] | None, samples: tuple[int, int],
               pool: Pool = None, chunk: int = 25, *, fallback: np.ndarray | None = None,
               reliability: SessionFitConfig | None = None
               ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -409,10 +409,12 @@ def _chamfers(model: tuple[str, str, str], params: BodyParams, clouds: Sequence[
     dtype) to their clouds, the surface counted where one of the cameras that recorded the
     frame (``present`` (T,C)) could see it; NaN: no points. With ``reliability`` (a config),
     also the (T,24) :func:`fit_reliability` weights of the same posed meshes, the chamfer NaN
-    where ``fallback`` (T,). The whole cloud counts: a subsampled one would leave the surface
-    farther from its nearest point and raise the surface → points half. Frame t's surface
-    samples are seeded with t, and each run of ``chunk`` frames poses its own meshes (a
-    worker is sent parameters, not vertices), so ``pool`` changes nothing but the time."""
+    where ``fallback`` (T,). ``samples``: the surface samples of the surface → points half
+    and the cloud points of the points → surface half (``error_samples``, ``error_points``):
+    the surface → points half searches the whole cloud (a subsampled one would leave the
+    surface farther from its nearest point and raise it). Frame t's samples are seeded with
+    t, and each run of ``chunk`` frames poses its own meshes (a worker is sent parameters, not
+    vertices), so ``pool`` changes nothing but the time."""
     pts = [cloud_arrays(c)[0] for c in clouds]
     t = params.num_frames
     fallback = np.zeros(t, bool) if fallback is None else np.asarray(fallback, bool)
@@ -428,8 +430,8 @@ def _chamfers(model: tuple[str, str, str], params: BodyParams, clouds: Sequence[
 
 def _chamfer_run(model: tuple[str, str, str], params: BodyParams, points: Sequence[np.ndarray],
                  views: Sequence[CameraView], present: np.ndarray,
-                 occluders: tuple[np.ndarray, np.ndarray] | None, samples: int, first: int,
-                 fallback: np.ndarray, reliability: SessionFitConfig | None
+                 occluders: tuple[np.ndarray, np.ndarray] | None, samples: tuple[int, int],
+                 first: int, fallback: np.ndarray, reliability: SessionFitConfig | None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`_chamfers` of frames ``first, first + 1, ...`` (a pool task)."""
     body = cached_model(*model)
@@ -441,7 +443,8 @@ def _chamfer_run(model: tuple[str, str, str], params: BodyParams, points: Sequen
         seen = [v for v, ok in zip(views, present[k], strict=True) if ok]
         if len(p) and seen:
             out[k] = surface_distances(low[k], body.faces, p, visible_from=seen,
-                                       occluders=scene, samples=samples, seed=first + k).chamfer
+                                       occluders=scene, samples=samples[0], seed=first + k,
+                                       max_points=samples[1]).chamfer
     if reliability is None:
         return out, None
     out[fallback] = np.nan
@@ -872,9 +875,9 @@ def fit_session(session_dir: str | os.PathLike, *,
                      np.asarray(chair.faces))
     measure = (cfg.error_model, bcfg.device, bcfg.dtype)
     present = ss.kinect.frame_table[rows[keys]] >= 0
+    samples = (bcfg.error_samples, bcfg.error_points)
     fit_chamfer, rel = _chamfers(measure, fit.params, clouds, views, present, occluders,
-                                 bcfg.error_samples, pool, fallback=fit.fallback,
-                                 reliability=cfg)
+                                 samples, pool, fallback=fit.fallback, reliability=cfg)
     if (rel > 0).any():
         align = refine_alignment(fit.joints, imu_k.joint_positions, rel)
     else:
@@ -918,7 +921,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     joints = joints.cpu().numpy().astype(np.float64)
     fused_chamfer = _spread_rows(
         _chamfers(measure, fused.frames(keys), clouds, views, present, occluders,
-                  bcfg.error_samples, pool)[0], keys, len(rows), np.nan)
+                  samples, pool)[0], keys, len(rows), np.nan)
     seconds["errors"] += time.perf_counter() - t0
     for m in warnings:
         log.warning("%s", m)

@@ -114,7 +114,7 @@ def test_body_accuracy_against_ground_truth(sim, name):
     c_true = _chamfers((SessionFitConfig().error_model, "cpu", "float32"), true_params,
                        sf.clouds, sf.views, sf.sync.kinect.frame_table[sf.rows] >= 0,
                        (chair.vertices @ chair.world_from_object[:3, :3].T
-                        + chair.world_from_object[:3, 3], chair.faces), 4000)[0]
+                        + chair.world_from_object[:3, 3], chair.faces), (4000, 4000))[0]
     both = np.isfinite(c_true) & np.isfinite(sf.fit_chamfer) & np.isfinite(sf.chamfer)
     fps = 1.0 / sf.sync.kinect.period_s
     jit = jitter(sf.joints, fps).mean() / jitter(true_joints, fps).mean()
