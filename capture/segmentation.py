@@ -434,11 +434,7 @@ def foreground(depth_mm: np.ndarray, background: BackgroundModel, calib: KinectC
             pixels) and opened (thin boundary noise): the pixels whose depth a point cloud may
             trust; none is within ``floor_tolerance`` of the floor.
     """
-    if depth_mm.shape != background.depth.shape:
-        raise SegmentationError(f"depth image {depth_mm.shape} does not match the background "
-                                f"{background.depth.shape}")
-    return _foreground(depth_mm, background, _View.of(calib, world_from_depth),
-                       config or SegmentationConfig())
+    return camera_foreground(background, calib, world_from_depth, config)(depth_mm)
 
 
 def camera_foreground(background: BackgroundModel, calib: KinectCalibration,
