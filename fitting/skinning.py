@@ -25,7 +25,7 @@ import dataclasses
 import torch
 
 from couch.body import BodyModel
-from couch.body.lbs import blend_shapes, rigid_transforms, vertices_to_joints
+from couch.body.lbs import blend_shapes, forward_kinematics, vertices_to_joints
 from couch.fitting.terms import vertex_normals
 
 __all__ = ["Posed", "Skinner"]
@@ -84,16 +84,14 @@ class Skinner:
         """
         m = self.model
         b, nj = local.shape[:2]
-        joints, rel = rigid_transforms(local, rest_joints.expand(b, nj, 3), m.parents)
-        rel = rel[..., :3, :].clone()
-        rel[..., 3] = rel[..., 3] + transl[:, None]
-        # world rotation of each joint: the rotation part of its skinning transform
+        joints, rel = forward_kinematics(local, rest_joints.expand(b, nj, 3), m.parents, transl)
         offsets = None
         if m.posedirs is not None:
             eye = torch.eye(3, dtype=local.dtype, device=local.device)
             feature = (local[:, 1:] - eye).flatten(1)
             offsets = (feature @ m.posedirs).view(b, -1, 3)
-        return Posed(transforms=rel.reshape(b, nj, 12), joints=joints + transl[:, None],
+        # world rotation of each joint: the rotation part of its skinning transform
+        return Posed(transforms=rel.reshape(b, nj, 12), joints=joints,
                      orient=rel[..., :3], pose_offsets=offsets)
 
     def posed_mesh(self, posed: Posed, v_shaped: torch.Tensor

@@ -21,7 +21,9 @@ from couch.body import (
     BodyModelError,
     bundled_manifest,
     bundled_model_dir,
+    forward_kinematics,
     load_body_model,
+    rigid_transforms,
     sitting_pose,
 )
 from couch.safe_pickle import UnsafePickleError, safe_load_pickle
@@ -110,6 +112,39 @@ def test_lbs_matches_independent_reference(name):
                                         body_pose=pose[None, 1:], transl=transl[None])
     assert np.abs(joints[0].numpy() - ref_j).max() < 1e-9
     assert np.abs(transforms[0].numpy() - g).max() < 1e-12
+
+
+@pytest.mark.parametrize("parents", [
+    list(PARENTS),
+    [-1, 0, 0, 2, 1],  # the deepest joints' parents in the other order
+    [-1, 0, 1, 0, 2, 3],  # a depth's joints not consecutive
+], ids=["smpl", "crossed", "interleaved"])
+def test_forward_kinematics_matches_a_joint_by_joint_chain(parents):
+    """Each depth of the tree is posed by one batched product: the same transforms as
+    composing [R | offset] joint by joint, whatever the order of the joints in the table."""
+    rng = np.random.default_rng(3)
+    b, nj = 5, len(parents)
+    rot = Rotation.from_rotvec(rng.normal(0, 0.7, (b * nj, 3))).as_matrix().reshape(b, nj, 3, 3)
+    rest = rng.normal(0, 0.3, (b, nj, 3))
+    transl = rng.normal(0, 1, (b, 3))
+    world = np.zeros((b, nj, 4, 4))
+    for j, p in enumerate(parents):
+        local = np.zeros((b, 4, 4))
+        local[:, :3, :3], local[:, 3, 3] = rot[:, j], 1.0
+        local[:, :3, 3] = rest[:, j] - (rest[:, p] if p >= 0 else 0.0)
+        world[:, j] = local if p < 0 else world[:, p] @ local
+    posed, transforms = forward_kinematics(torch.as_tensor(rot), torch.as_tensor(rest),
+                                           torch.as_tensor(parents), torch.as_tensor(transl))
+    assert transforms.shape == (b, nj, 3, 4)
+    assert np.abs(posed.numpy() - (world[..., :3, 3] + transl[:, None])).max() < 1e-12
+    assert np.abs(transforms[..., :3].numpy() - world[..., :3, :3]).max() < 1e-12
+    # rest-pose points attached to a joint land where the chain puts them
+    moved = (transforms[..., :3] @ torch.as_tensor(rest)[..., None])[..., 0] + transforms[..., 3]
+    assert np.abs(moved.numpy() - posed.numpy()).max() < 1e-12
+    j4, t4 = rigid_transforms(torch.as_tensor(rot), torch.as_tensor(rest),
+                              torch.as_tensor(parents))
+    assert np.abs(j4.numpy() - world[..., :3, 3]).max() < 1e-12
+    assert np.abs(t4[..., 3, :].numpy() - [0, 0, 0, 1]).max() == 0
 
 
 def test_float32_matches_float64_and_matrices_match_axis_angle(body_model):

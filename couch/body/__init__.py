@@ -1,6 +1,12 @@
 """SMPL-format body models: loading (bundled, real SMPL npz/pkl), batched LBS, skeleton, poses."""
 
-from couch.body.lbs import blend_shapes, lbs, rigid_transforms, vertices_to_joints
+from couch.body.lbs import (
+    blend_shapes,
+    forward_kinematics,
+    lbs,
+    rigid_transforms,
+    vertices_to_joints,
+)
 from couch.body.model import (
     BUNDLED_MODELS,
     BodyModel,
@@ -26,6 +32,6 @@ __all__ = [
     "BUNDLED_MODELS", "CONTACT_NAMES", "JOINT_INDEX", "JOINT_NAMES", "NUM_BODY_JOINTS",
     "NUM_JOINTS", "PARENTS", "BodyModel", "BodyModelError", "BodyOutput", "Skeleton",
     "blend_shapes", "body_pose", "bundled_manifest", "bundled_model_dir", "contact_vertex_sets",
-    "lbs", "load_body_model", "rigid_transforms", "sitting_pose", "standing_pose",
-    "vertices_to_joints",
+    "forward_kinematics", "lbs", "load_body_model", "rigid_transforms", "sitting_pose",
+    "standing_pose", "vertices_to_joints",
 ]
