@@ -700,7 +700,7 @@ class _Runner:
             ss, sync_s = self.sync(ext)
             fit = fit_session(self.view, extrinsics=ext, chair=chair_model(chair), sync=ss,
                               frames=self.frames, config=cfg, progress=self.progress,
-                              pool=self.pool)
+                              pool=self.pool, threads=self.workers)
             fit.seconds["sync"] = sync_s  # 0 when the chair stage synchronised
             return body_result(fit)
 

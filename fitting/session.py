@@ -748,7 +748,7 @@ def fit_session(session_dir: str | os.PathLike, *,
                 chair: ChairModel | None = None, scan: str | os.PathLike | None = None,
                 sync: SessionSync | None = None, frames: tuple[int, int] | None = None,
                 config: SessionFitConfig | None = None, progress: bool = False,
-                pool: Pool = None) -> SessionFit:
+                pool: Pool = None, threads: int = 1) -> SessionFit:
     """Sync, clouds, IMU-initialised per-frame fits and sequence fusion of one session.
 
     Args:
@@ -766,6 +766,8 @@ def fit_session(session_dir: str | os.PathLike, *,
         pool: where the cameras' passes, the snap, the fits' chunks and the chamfers' and
             reliability's runs of frames go (:func:`couch.pool.spawn_pool`); None: all here.
             The fit is the same either way.
+        threads: threads of this process for the sequence fusion (its spans' gradients), e.g.
+            as many as the pool's workers, which wait meanwhile. The same result with any.
 
     Raises:
         SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person
@@ -910,7 +912,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     rel = _spread_rows(rel, keys, len(rows), 0.0)
     if cfg.fuse:
         fused = fuse_motion(fit.params, imu_params, rel, fc, config=cfg.fusion,
-                            fps=1.0 / ss.kinect.period_s)
+                            fps=1.0 / ss.kinect.period_s, threads=threads)
     else:
         fused = fit.params
     seconds["fusion"] = time.perf_counter() - t0

@@ -221,6 +221,48 @@ def test_fusion_is_repeatable(model, truth):
         assert np.array_equal(out.global_orient, outs[0].global_orient)
 
 
+def test_spans_sum_to_the_whole_sequence_on_any_number_of_threads(model, truth):
+    """A sequence long enough for two spans (the motion and then its reverse, 96 frames):
+    their terms and gradients computed apart and summed fuse it as one span does, to the
+    optimiser's precision, and the same to the bit on one thread or two."""
+    params, joints, _, contact = truth
+    kinect, reliability = _kinect(params, seed=1)
+    imu = _biased_imu(params, seed=2)
+
+    def twice(p: BodyParams) -> BodyParams:
+        back = p.frames(np.arange(T)[::-1])
+        return BodyParams(*(np.concatenate([a, b]) for a, b in (
+            (p.global_orient, back.global_orient), (p.body_pose, back.body_pose),
+            (p.transl, back.transl))), p.betas)
+
+    long_kinect, long_imu = twice(kinect), twice(imu)
+    rel = np.r_[reliability, reliability[::-1]]
+    fc = np.r_[contact, contact[::-1]]
+    whole = fuse_motion(long_kinect, long_imu, rel, fc, model, FusionConfig(spans=1))
+    split = [fuse_motion(long_kinect, long_imu, rel, fc, model, FusionConfig(spans=2),
+                         threads=n) for n in (1, 2)]
+    # a few iterations from the same start: the same loss and gradient but for rounding
+    few = [_posed(model, fuse_motion(long_kinect, long_imu, rel, fc, model,
+                                     FusionConfig(spans=n, rounds=1, iters=3)))[0]
+           for n in (1, 2)]
+    print(f"\n3 iterations, spans 2 vs 1: {np.abs(few[1] - few[0]).max():.2e} m")
+    assert np.abs(few[1] - few[0]).max() < 1e-6  # 1.5e-8 m; 3e-5 without one boundary step
+    for a, b in zip(dataclasses.astuple(split[0]), dataclasses.astuple(split[1]), strict=True):
+        assert np.array_equal(a, b)
+    j_whole, j_split = _posed(model, whole)[0], _posed(model, split[0])[0]
+    gap = np.linalg.norm(j_split - j_whole, axis=-1)
+    truth_joints = np.r_[joints, joints[::-1]]
+    err = [np.linalg.norm(j - truth_joints, axis=-1).mean() for j in (j_whole, j_split)]
+    print(f"\nspans 2 vs 1: joints {gap.mean() * 1000:.3f} mm mean, {gap.max() * 1000:.3f} "
+          f"max; MPJPE {err[0] * 100:.2f} / {err[1] * 100:.2f} cm")
+    assert gap.mean() < 0.5e-3 and gap.max() < 3e-3
+    assert abs(err[1] - err[0]) < 0.5e-3
+    with pytest.raises(ValueError, match="threads"):
+        fuse_motion(long_kinect, long_imu, rel, fc, model, threads=0)
+    with pytest.raises(ValueError, match="spans"):
+        FusionConfig(spans=0)
+
+
 def test_contact_runs():
     c = np.zeros((6, 2), dtype=bool)
     c[1:3, 0] = c[5:, 0] = c[:, 1] = True
