@@ -227,6 +227,50 @@ class ChairConfig:
 # --------------------------------------------------------------------------- the scan
 
 
+@dataclasses.dataclass(frozen=True)
+class DistanceGrid:
+    """Distances (m) to a surface at the nodes of a regular grid (the surface's frame).
+
+    The distance to a surface moves no faster than the point does, so a point's distance is
+    its nearest node's within :attr:`bound` (half the cell's diagonal): the nodes tell most
+    points' side of a margin without the exact query, and which points need one.
+
+    Attributes:
+        origin: (3,) the first node. spacing: node spacing (m).
+        values: (X,Y,Z) float32 distances of the nodes.
+    """
+
+    origin: np.ndarray
+    spacing: float
+    values: np.ndarray
+
+    @property
+    def bound(self) -> float:
+        """Largest gap (m) between a point's distance and its nearest node's (float32's
+        rounding included), for points inside the grid."""
+        return self.spacing * np.sqrt(3.0) / 2 + 1e-4
+
+    @classmethod
+    def of(cls, scene: o3d.t.geometry.RaycastingScene, low: np.ndarray, high: np.ndarray,
+           spacing: float = 0.03, pad: float = 0.08) -> DistanceGrid:
+        """The grid over the box ``low``-``high`` (m) widened by ``pad`` on every side."""
+        origin = np.asarray(low, np.float64) - pad
+        shape = np.ceil((np.asarray(high, np.float64) + pad - origin) / spacing).astype(int) + 1
+        axes = [origin[k] + spacing * np.arange(shape[k]) for k in range(3)]
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        values = scene.compute_distance(o3d.core.Tensor(nodes.astype(np.float32))).numpy()
+        return cls(origin, float(spacing), values.reshape(*shape))
+
+    def nearest(self, points: np.ndarray) -> np.ndarray:
+        """(N,) the distance at each of ``points``' (N,3) nearest node; NaN outside the grid."""
+        idx = np.rint((points - self.origin) / self.spacing).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < self.values.shape), axis=1)
+        out = np.full(len(points), np.nan, np.float32)
+        i = idx[inside]
+        out[inside] = self.values[i[:, 0], i[:, 1], i[:, 2]]
+        return out
+
+
 @dataclasses.dataclass
 class ChairScan:
     """The object's scan mesh (its own frame, metres) and what the registration uses of it.
@@ -262,6 +306,12 @@ class ChairScan:
         scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
                             o3d.core.Tensor(self.faces.astype(np.uint32)))
         return scene
+
+    @functools.cached_property
+    def distance_grid(self) -> DistanceGrid:
+        """The surface's distances on a coarse grid (3 cm) over its bounding box
+        (:class:`DistanceGrid`, built once: 0.4 s for a scan 1.7 m across)."""
+        return DistanceGrid.of(self.scene(), self.vertices.min(0), self.vertices.max(0))
 
     @functools.cached_property
     def resting_rotations(self) -> np.ndarray:
@@ -571,20 +621,47 @@ class FrameResult:
     method: str = "track"
 
 
+def _in_box(points: np.ndarray, scan: ChairScan, world_from_object: np.ndarray,
+            margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M,3) the scan-frame points of ``points`` (N,3, world) within ``margin`` of the scan's
+    bounding box, and (M,) their indices: the ray-casting need not see the room."""
+    local = apply_transform(invert_transform(world_from_object), points)
+    near = np.flatnonzero(np.all((local >= scan.vertices.min(0) - margin)
+                                 & (local <= scan.vertices.max(0) + margin), axis=1))
+    return local[near], near
+
+
+def _distances(scene: o3d.t.geometry.RaycastingScene, local: np.ndarray) -> np.ndarray:
+    return scene.compute_distance(o3d.core.Tensor(local.astype(np.float32))).numpy()
+
+
 def _evaluate(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.RaycastingScene,
               world_from_object: np.ndarray, margin: float, inlier: float
               ) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool points within ``margin`` of the posed scan and (M,) their exact distances
-    (m) to its surface. A bounding-box test (scan frame) first spares the ray-casting the room."""
-    local = apply_transform(invert_transform(world_from_object), points)
-    near = np.all((local >= scan.vertices.min(0) - margin)
-                  & (local <= scan.vertices.max(0) + margin), axis=1)
+    (m) to its surface."""
+    local, near = _in_box(points, scan, world_from_object, margin)
     d = np.full(len(points), np.inf)
-    if near.any():
-        d[near] = scene.compute_distance(
-            o3d.core.Tensor(local[near].astype(np.float32))).numpy()
+    if len(near):
+        d[near] = _distances(scene, local)
     crop = d < margin
     return crop, d[crop]
+
+
+def _crop(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.RaycastingScene,
+          world_from_object: np.ndarray, margin: float) -> np.ndarray:
+    """:func:`_evaluate`'s crop alone, the same points: the scan's distance grid tells the
+    points clearly nearer or farther than ``margin``, the exact distances only the rest (the
+    exact queries were a third of the chair registration's time)."""
+    local, near = _in_box(points, scan, world_from_object, margin)
+    crop = np.zeros(len(points), bool)
+    grid = scan.distance_grid
+    g = grid.nearest(local)
+    crop[near[g < margin - grid.bound]] = True
+    unsure = ~(np.abs(g - margin) > grid.bound)  # NaN (off the grid) included
+    if unsure.any():
+        crop[near[unsure]] = _distances(scene, local[unsure]) < margin
+    return crop
 
 
 def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
@@ -615,7 +692,7 @@ def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
     stages = cfg.icp_distances if stages is None else tuple(stages)
     margin = max(cfg.crop_margin, stages[0])
     for dist in stages:
-        crop, _ = _evaluate(pts, scan, scene, pose, margin, cfg.inlier_distance)
+        crop = _crop(pts, scan, scene, pose, margin)
         if crop.sum() < max(cfg.min_points // 3, 10):
             return FrameResult(None, 0.0, np.inf, int(crop.sum()))
         idx = np.flatnonzero(crop)
@@ -1218,8 +1295,7 @@ def register_chair(scan: ChairScan | str | os.PathLike, clouds: ChairClouds | Se
     t0 = wallclock.perf_counter()
     for s in segments:
         union = np.concatenate([np.asarray(cl[i].points, np.float64) for i in s.frames])
-        crop, _ = _evaluate(union, scan, scene, s.world_from_object, cfg.chamfer_margin,
-                            cfg.inlier_distance)
+        crop = _crop(union, scan, scene, s.world_from_object, cfg.chamfer_margin)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(union[crop]))
         if cfg.chamfer_voxel > 0:
             pcd = pcd.voxel_down_sample(cfg.chamfer_voxel)

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial.transform import Rotation
 
 import couch.fitting.chair as chair_module
 from couch.capture.depth_bias import floor_depth_bias
@@ -241,6 +242,36 @@ def test_screening_runs_on_a_capped_subset(sim, monkeypatch):
         err = _pose_errors(cands[0].pose, truth, scan.vertices)
         assert err["rot_deg"] < 0.5 and err["max_vertex_mm"] < 5.0, err
     assert _pose_errors(capped[0].pose, full[0].pose, scan.vertices)["max_vertex_mm"] < 1.0
+
+
+def test_the_distance_grid_crops_the_points_the_exact_distances_do(sim):
+    """The crops of the ICP stages and the chamfer read the scan's coarse distance grid and
+    query exact distances only near the margin: the same points as all exact distances, for
+    points on the chair, near it and across the room, at the true pose and off it."""
+    s = sim("straight")
+    scan = load_scan(s["root"] / "chair_scan.obj")
+    grid, scene = scan.distance_grid, scan.scene()
+    rng = np.random.default_rng(4)
+    surface = scan.samples[rng.choice(len(scan.samples), 3000)]
+    local = np.concatenate([surface + rng.normal(0, 0.01, surface.shape),
+                            surface + rng.normal(0, 0.05, surface.shape),
+                            rng.uniform(scan.vertices.min(0) - 0.2, scan.vertices.max(0) + 0.2,
+                                        (3000, 3))])
+    exact = chair_module._distances(scene, local)
+    near = grid.nearest(local)
+    inside = np.isfinite(near)
+    assert inside.mean() > 0.5 and np.abs(near - exact)[inside].max() <= grid.bound
+    truth = np.array(s["info"]["chair"]["world_from_scan"])
+    off = truth @ make_transform(Rotation.from_euler("y", 7, degrees=True).as_matrix(),
+                                 [0.03, 0.0, -0.02])
+    frame = s["clouds"].clouds[0].points
+    for pose in (truth, off):
+        for points in (apply_transform(pose, local), np.asarray(frame, np.float64)):
+            for margin in (0.03, 0.05):
+                crop = chair_module._crop(points, scan, scene, pose, margin)
+                assert np.array_equal(crop, chair_module._evaluate(points, scan, scene, pose,
+                                                                   margin, 0.008)[0])
+                assert 0 < crop.sum() < len(points)
 
 
 def test_same_result_twice(sim):
