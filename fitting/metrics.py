@@ -219,20 +219,26 @@ def _visible(scenes: Sequence[o3d.t.geometry.RaycastingScene], pts: np.ndarray,
     centres = (np.array([v.centre for v in views]) if views and views[0] is not None
                else np.asarray(cameras, np.float64).reshape(-1, 3))
     for cam, view in zip(centres, views, strict=True):
-        d = cam - pts
+        # rays only for the points no camera before saw and this one could (the ray casts
+        # were the visibility's cost)
+        idx = np.flatnonzero(~seen)
+        p = pts[idx]
+        d = cam - p
         dist = np.linalg.norm(d, axis=1)
         d /= dist[:, None]
+        if view is not None:
+            ok = view.in_view(p)
+            if view.max_incidence_deg is not None:
+                cos = np.abs(np.einsum("ij,ij->i", d, normals[idx]))
+                ok &= cos >= np.cos(np.deg2rad(view.max_incidence_deg))
+            idx, p, d, dist = idx[ok], p[ok], d[ok], dist[ok]
+        if not len(idx):
+            continue
         # start just off the surface towards the camera, so the sample's own face is not hit
-        origin = pts + 1e-4 * d
+        origin = p + 1e-4 * d
         rays = o3d.core.Tensor(np.concatenate([origin, d], axis=1).astype(np.float32))
         hit = np.min([sc.cast_rays(rays)["t_hit"].numpy() for sc in scenes], axis=0)
-        unhidden = ~(hit < dist - 1e-3)
-        if view is not None:
-            unhidden &= view.in_view(pts)
-            if view.max_incidence_deg is not None:
-                cos = np.abs(np.einsum("ij,ij->i", d, normals))
-                unhidden &= cos >= np.cos(np.deg2rad(view.max_incidence_deg))
-        seen |= unhidden
+        seen[idx[~(hit < dist - 1e-3)]] = True
     return seen
 
 
