@@ -163,7 +163,8 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
                       visible_from: np.ndarray | Sequence[CameraView] | None = None,
                       occluders: Occluders | None = None,
                       samples: int = 4000, seed: int = 0,
-                      max_points: int | None = None) -> SurfaceDistances:
+                      max_points: int | None = None,
+                      tree: cKDTree | None = None) -> SurfaceDistances:
     """Point cloud ↔ mesh distances of one frame.
 
     Args:
@@ -183,6 +184,7 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
             for 4000 of a body's points), at a fraction of the cost of the exact distances;
             the other direction always searches every point (fewer would leave the surface
             farther from its nearest one).
+        tree: ``cKDTree`` of the points (as float32) when the caller has it, for that search.
 
     Returns:
         :class:`SurfaceDistances`.
@@ -203,7 +205,8 @@ def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
         # a separate scene: adding the occluder to the body's would rebuild the body's BVH
         scenes = [scene] if occluders is None else [scene, occluder_scene(occluders)]
         sample = sample[_visible(scenes, sample, normal, visible_from)]
-    to_points = (cKDTree(pts).query(sample)[0] if len(pts) and len(sample)
+    tree = tree if tree is not None else cKDTree(pts) if len(pts) else None
+    to_points = (tree.query(sample)[0] if len(pts) and len(sample)
                  else np.full(len(sample), np.nan))
     return SurfaceDistances(to_surface, np.asarray(to_points, dtype=np.float64))
 

@@ -439,18 +439,21 @@ def _chamfer_run(model: tuple[str, str, str], params: BodyParams, points: Sequen
     low = verts.astype(np.float32)
     out = np.full(len(verts), np.nan)
     scene = occluder_scene(occluders) if occluders is not None else None
+    # each cloud's k-d tree once, for the chamfer and the reliability
+    trees = [cKDTree(np.asarray(p, np.float32)) if len(p) else None for p in points]
     for k, p in enumerate(points):
         seen = [v for v, ok in zip(views, present[k], strict=True) if ok]
         if len(p) and seen:
             out[k] = surface_distances(low[k], body.faces, p, visible_from=seen,
                                        occluders=scene, samples=samples[0], seed=first + k,
-                                       max_points=samples[1]).chamfer
+                                       max_points=samples[1], tree=trees[k]).chamfer
     if reliability is None:
         return out, None
     out[fallback] = np.nan
     seg = body.weights.cpu().numpy().argmax(1)
     return out, _reliability_run(verts, body.faces, seg, points, views,
-                                 _frame_weights(out, fallback, reliability), reliability)
+                                 _frame_weights(out, fallback, reliability), reliability,
+                                 trees)
 
 
 # --------------------------------------------------------------------------- clouds
@@ -714,9 +717,11 @@ def _frame_weights(chamfer: np.ndarray, fallback: np.ndarray, cfg: SessionFitCon
 
 def _reliability_run(verts: np.ndarray, faces: np.ndarray, seg: np.ndarray,
                      points: Sequence[np.ndarray], views: Sequence[CameraView],
-                     frame_w: np.ndarray, cfg: SessionFitConfig) -> np.ndarray:
+                     frame_w: np.ndarray, cfg: SessionFitConfig,
+                     trees: Sequence[cKDTree | None] | None = None) -> np.ndarray:
     """:func:`fit_reliability` of a run of frames (a pool task): posed meshes (n,V,3), their
-    clouds' points, the per-frame weights; ``seg`` (V,) the joint moving each vertex most."""
+    clouds' points, the per-frame weights; ``seg`` (V,) the joint moving each vertex most;
+    ``trees`` the clouds' k-d trees when the caller has them."""
     keep = np.flatnonzero(frame_w > 0)
     out = np.zeros((len(verts), 24))
     if not len(keep):
@@ -731,7 +736,8 @@ def _reliability_run(verts: np.ndarray, faces: np.ndarray, seg: np.ndarray,
         facing[todo] = view.in_view(verts[todo])
     onehot = np.eye(24)[seg]  # (V,24)
     for i, k in enumerate(keep):
-        d, _ = cKDTree(points[k]).query(verts[i], distance_upper_bound=cfg.support_distance)
+        tree = trees[k] if trees is not None else cKDTree(points[k])
+        d, _ = tree.query(verts[i], distance_upper_bound=cfg.support_distance)
         backed = (d <= cfg.support_distance) & facing[i]
         n_facing = facing[i] @ onehot
         frac = np.divide(backed @ onehot, n_facing, out=np.zeros(24), where=n_facing > 0)
