@@ -565,17 +565,62 @@ def chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, calib: KinectCalibratio
     return _chair_pixels(mask, depth_mm, _View.of(calib, world_from_depth), chair, distance)
 
 
+@dataclasses.dataclass
+class _ChairMemo:
+    """One camera's last exact distance to the chair per pixel, over a pass through its frames.
+
+    A pixel's point moves ``|Δz| · |(x, y, 1)|`` when its depth changes by Δz, and its distance
+    to the chair by no more, so a pixel whose depth stayed near the one last measured is on
+    the same side of the threshold without a new query (the chair's own pixels, static but
+    for the sensor's noise, were most of the queries: 1.6 of 4.9 s of a camera's 900 person
+    clouds).
+
+    Attributes:
+        depth_mm: (H,W) the depth last measured at (0: never).
+        distance: (H,W) float32 its distance (m) to the chair.
+        stretch: (H,W) float32 metres the point moves per millimetre of depth.
+    """
+
+    depth_mm: np.ndarray
+    distance: np.ndarray
+    stretch: np.ndarray
+
+    @classmethod
+    def of(cls, view: _View) -> _ChairMemo:
+        shape = view.rays.shape[:2]
+        stretch = 1e-3 * np.sqrt(1.0 + np.square(view.rays).sum(-1))
+        return cls(np.zeros(shape, np.int32), np.zeros(shape, np.float32),
+                   np.nan_to_num(stretch, nan=np.inf).astype(np.float32))
+
+
 def _chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, view: _View, chair: ChairModel,
-                  distance: float) -> np.ndarray:
+                  distance: float, memo: _ChairMemo | None = None) -> np.ndarray:
     out = np.zeros(mask.shape, dtype=bool)
     sel = mask & (depth_mm > 0)
     if not np.any(sel):
         return out
     world = view.world(view.points(depth_mm, sel))
     lo, hi = chair.bounds
-    inside = np.all((world > lo - distance) & (world < hi + distance), axis=1)
+    inside = np.flatnonzero(np.all((world > lo - distance) & (world < hi + distance), axis=1))
     near = np.zeros(len(world), dtype=bool)
-    near[inside] = chair.distance(world[inside]) < distance
+    if memo is None:
+        near[inside] = chair.distance(world[inside]) < distance
+    else:
+        rows, cols = np.nonzero(sel)
+        rows, cols = rows[inside], cols[inside]
+        z = depth_mm[rows, cols].astype(np.int32)
+        was = memo.depth_mm[rows, cols]
+        # the bound, plus float32's rounding of the points and the distances
+        slack = np.abs(z - was) * memo.stretch[rows, cols] + 1e-4
+        last = memo.distance[rows, cols]
+        known = was > 0
+        sure = known & ((last + slack < distance) | (last - slack >= distance))
+        near[inside[sure]] = last[sure] < distance
+        ask = ~sure
+        exact = chair.distance(world[inside[ask]])
+        near[inside[ask]] = exact < distance
+        memo.depth_mm[rows[ask], cols[ask]] = z[ask]
+        memo.distance[rows[ask], cols[ask]] = exact
     out[sel] = near
     return out
 
@@ -705,13 +750,15 @@ def segment_frame(depth_mm: np.ndarray, background: BackgroundModel, calib: Kine
 
 def _split(depth_mm: np.ndarray, fg: tuple[np.ndarray, np.ndarray], view: _View,
            chair: ChairModel | None, static: np.ndarray | None, room_chair: np.ndarray | None,
-           cfg: SegmentationConfig, index: int, timestamp_us: int) -> FrameSegmentation:
-    """:func:`segment_frame` from the frame's ``(mask, reliable)`` foreground."""
+           cfg: SegmentationConfig, index: int, timestamp_us: int,
+           memo: _ChairMemo | None = None) -> FrameSegmentation:
+    """:func:`segment_frame` from the frame's ``(mask, reliable)`` foreground (``memo``: the
+    camera's chair distances so far, in a pass over its frames)."""
     mask, reliable = fg
     is_chair = np.zeros_like(mask)
     if chair is not None:
         cand = mask if room_chair is None else mask & ~room_chair
-        is_chair |= _chair_pixels(cand, depth_mm, view, chair, cfg.chair_distance)
+        is_chair |= _chair_pixels(cand, depth_mm, view, chair, cfg.chair_distance, memo)
     if static is not None:
         is_chair |= static & mask
     person = mask
@@ -891,11 +938,12 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     room_chair = None if chair is None else room_on_chair(background, calib, world_from_depth,
                                                           chair, cfg.chair_distance)
     frames = []
+    memo = _ChairMemo.of(view) if chair is not None else None
     for i, t in usable:
         if i in wanted:
             d = depths[i]
             fg = fg_of[i] if i in fg_of else _foreground(d, background, view, cfg)
-            frames.append(_split(d, fg, view, chair, static, room_chair, cfg, i, t))
+            frames.append(_split(d, fg, view, chair, static, room_chair, cfg, i, t, memo))
     if skipped:
         log.warning("%s: skipped %d capture(s) without usable depth", path, len(skipped))
     return CameraSegmentation(serial=rec.serial or path.stem, calibration=calib,

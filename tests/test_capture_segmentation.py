@@ -50,6 +50,8 @@ from couch.capture.segmentation import (
     empty_room_recording,
     foreground,
     mask_to_color,
+    room_on_chair,
+    segment_frame,
     segment_recording,
 )
 from couch.schema import read_processed
@@ -148,6 +150,26 @@ def test_segmenting_some_captures_gives_their_masks_unchanged(session):
     for f in part.frames:
         assert np.array_equal(f.person, by_stamp[f.timestamp_us].person)
         assert np.array_equal(f.chair, by_stamp[f.timestamp_us].chair)
+
+
+def test_a_pass_reuses_chair_distances_with_the_same_masks(session):
+    """A pass over a camera's captures queries a pixel's distance to the chair again only when
+    its depth moved enough to cross the threshold: each frame's chair and person masks are
+    those of segmenting the frame alone, which queries every pixel."""
+    if session["cfg"].seed != 5:
+        pytest.skip("one session is enough")
+    cam = session["info"]["cameras"][0]
+    seg, chair = session["segs"][0], session["chair"]
+    pose = np.asarray(cam["world_from_depth"])
+    room = room_on_chair(seg.background, seg.calibration, pose, chair,
+                         SegmentationConfig().chair_distance)
+    chairs = 0
+    for f in seg.frames:
+        alone = segment_frame(f.depth_mm, seg.background, seg.calibration, pose, chair,
+                              room_chair=room)
+        assert np.array_equal(f.chair, alone.chair) and np.array_equal(f.person, alone.person)
+        chairs += int(f.chair.any())
+    assert chairs > len(seg.frames) // 2
 
 
 def test_camera_foreground_is_foreground_and_can_skip_the_reliable_pixels(session):
