@@ -602,25 +602,22 @@ def _chair_pixels(mask: np.ndarray, depth_mm: np.ndarray, view: _View, chair: Ch
     world = view.world(view.points(depth_mm, sel))
     lo, hi = chair.bounds
     inside = np.flatnonzero(np.all((world > lo - distance) & (world < hi + distance), axis=1))
+    memo = memo if memo is not None else _ChairMemo.of(view)  # a lone frame: every pixel asks
+    rows, cols = np.nonzero(sel)
+    rows, cols = rows[inside], cols[inside]
+    z = depth_mm[rows, cols].astype(np.int32)
+    was = memo.depth_mm[rows, cols]
+    # the bound, plus float32's rounding of the points and the distances
+    slack = np.abs(z - was) * memo.stretch[rows, cols] + 1e-4
+    last = memo.distance[rows, cols]
+    sure = (was > 0) & ((last + slack < distance) | (last - slack >= distance))
+    ask = ~sure
+    exact = chair.distance(world[inside[ask]])
     near = np.zeros(len(world), dtype=bool)
-    if memo is None:
-        near[inside] = chair.distance(world[inside]) < distance
-    else:
-        rows, cols = np.nonzero(sel)
-        rows, cols = rows[inside], cols[inside]
-        z = depth_mm[rows, cols].astype(np.int32)
-        was = memo.depth_mm[rows, cols]
-        # the bound, plus float32's rounding of the points and the distances
-        slack = np.abs(z - was) * memo.stretch[rows, cols] + 1e-4
-        last = memo.distance[rows, cols]
-        known = was > 0
-        sure = known & ((last + slack < distance) | (last - slack >= distance))
-        near[inside[sure]] = last[sure] < distance
-        ask = ~sure
-        exact = chair.distance(world[inside[ask]])
-        near[inside[ask]] = exact < distance
-        memo.depth_mm[rows[ask], cols[ask]] = z[ask]
-        memo.distance[rows[ask], cols[ask]] = exact
+    near[inside[sure]] = last[sure] < distance
+    near[inside[ask]] = exact < distance
+    memo.depth_mm[rows[ask], cols[ask]] = z[ask]
+    memo.distance[rows[ask], cols[ask]] = exact
     out[sel] = near
     return out
 

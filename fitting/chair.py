@@ -636,8 +636,7 @@ def _distances(scene: o3d.t.geometry.RaycastingScene, local: np.ndarray) -> np.n
 
 
 def _evaluate(points: np.ndarray, scan: ChairScan, scene: o3d.t.geometry.RaycastingScene,
-              world_from_object: np.ndarray, margin: float, inlier: float
-              ) -> tuple[np.ndarray, np.ndarray]:
+              world_from_object: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool points within ``margin`` of the posed scan and (M,) their exact distances
     (m) to its surface."""
     local, near = _in_box(points, scan, world_from_object, margin)
@@ -706,7 +705,7 @@ def track_frame(cloud: FusedCloud, scan: ChairScan, init: np.ndarray,
             o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations))
         pose = invert_transform(np.asarray(res.transformation))
         margin = max(cfg.crop_margin, dist)
-    crop, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin, cfg.inlier_distance)
+    crop, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin)
     n = int(crop.sum())
     inl = d < cfg.inlier_distance
     fitness = float(inl.mean()) if n else 0.0
@@ -916,7 +915,7 @@ def _explained(clouds: Sequence[FusedCloud], scan: ChairScan,
     for c in clouds:
         pts = np.asarray(c.points, np.float64)
         if len(pts):
-            _, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin, cfg.inlier_distance)
+            _, d = _evaluate(pts, scan, scene, pose, cfg.crop_margin)
             total += int(np.count_nonzero(d < cfg.inlier_distance))
             near.append(np.minimum(d, cfg.inlier_distance))
     d = np.concatenate(near) if near else np.zeros(0)

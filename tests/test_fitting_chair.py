@@ -270,7 +270,7 @@ def test_the_distance_grid_crops_the_points_the_exact_distances_do(sim):
             for margin in (0.03, 0.05):
                 crop = chair_module._crop(points, scan, scene, pose, margin)
                 assert np.array_equal(crop, chair_module._evaluate(points, scan, scene, pose,
-                                                                   margin, 0.008)[0])
+                                                                   margin)[0])
                 assert 0 < crop.sum() < len(points)
 
 
