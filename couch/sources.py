@@ -31,24 +31,50 @@ def _module_file(name: str) -> Path | None:
     return Path(spec.origin)
 
 
+def _statements(nodes: list[ast.AST]) -> Iterable[ast.AST]:
+    """Every statement of ``nodes`` and of the blocks nested in them (function and class
+    bodies, branches, handlers, match cases), without descending into expressions: an import
+    is a statement, and the expressions are most of a file's nodes."""
+    todo = list(nodes)
+    while todo:
+        node = todo.pop()
+        yield node
+        for _, value in ast.iter_fields(node):
+            if isinstance(value, list):
+                todo.extend(v for v in value
+                            if isinstance(v, ast.stmt | ast.excepthandler | ast.match_case))
+
+
+@functools.cache
+def _parsed_imports(source: bytes, filename: str) -> tuple[tuple[int, str, str], ...]:
+    """(level, module, name) of every ``import`` / ``from ... import`` name of ``source``:
+    parsed once per content in a process (the stages' closures share most files)."""
+    out = []
+    for node in _statements(ast.parse(source, filename=filename).body):
+        if isinstance(node, ast.Import):
+            out += [(-1, a.name, "") for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            out += [(node.level, node.module or "", a.name) for a in node.names]
+    return tuple(out)
+
+
 def _imports(path: Path, module: str) -> set[str]:
     """Module names of ``module``'s top-level package that its file ``path`` imports:
     ``import a.b`` gives ``a.b``; ``from a.b import c`` gives ``a.b.c`` when that is a module,
     else ``a.b``; relative imports are resolved against ``module``'s package."""
     here = module if path.name == "__init__.py" else module.rpartition(".")[0]
     out: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_bytes(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = here.rsplit(".", node.level - 1)[0] if node.level > 1 else here
-                source = f"{base}.{node.module}" if node.module else base
-            else:
-                source = node.module or ""
-            for a in node.names:
-                sub = f"{source}.{a.name}"
-                out.add(sub if _module_file(sub) is not None else source)
+    for level, name, attr in _parsed_imports(path.read_bytes(), str(path)):
+        if level < 0:
+            out.add(name)
+            continue
+        if level:
+            base = here.rsplit(".", level - 1)[0] if level > 1 else here
+            source = f"{base}.{name}" if name else base
+        else:
+            source = name
+        sub = f"{source}.{attr}"
+        out.add(sub if _module_file(sub) is not None else source)
     top = module.split(".")[0]
     return {m for m in out if m == top or m.startswith(top + ".")}
 

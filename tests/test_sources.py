@@ -12,15 +12,21 @@ from couch.sources import module_closure, source_digest
 
 @pytest.fixture
 def pkg(tmp_path, monkeypatch):
-    """A package ``toy``: ``toy.a`` imports ``toy.b`` lazily, inside a function, and a name from
-    ``toy.sub``; ``toy.sub.rel`` imports both relatively; ``toy.c`` is imported by nothing;
-    ``toy/sub/data/`` holds a data file."""
+    """A package ``toy``: ``toy.a`` imports ``toy.b`` lazily, inside a function, ``toy.d`` in an
+    exception handler of a method, and a name from ``toy.sub``; ``toy.sub.rel`` imports both
+    relatively; ``toy.c`` is imported by nothing; ``toy/sub/data/`` holds a data file."""
     root = tmp_path / "toy"
     (root / "sub" / "data").mkdir(parents=True)
     (root / "__init__.py").write_text("")
     (root / "a.py").write_text("import os\nfrom toy.sub import K\n\n"
-                               "def f():\n    import toy.b\n    return toy.b.Y + K\n")
+                               "def f():\n    import toy.b\n    return toy.b.Y + K\n\n"
+                               "class G:\n    def m(self, x):\n        match x:\n"
+                               "            case 1:\n                try:\n"
+                               "                    pass\n"
+                               "                except ValueError:\n"
+                               "                    from toy import d\n")
     (root / "b.py").write_text("Y = 2\n")
+    (root / "d.py").write_text("W = 5\n")
     (root / "c.py").write_text("Z = 3\n")
     (root / "sub" / "__init__.py").write_text("K = 1\n")
     (root / "sub" / "rel.py").write_text("from . import K\nfrom ..b import Y\n")
@@ -38,11 +44,14 @@ def _digest(*entries: str) -> str:
 
 
 def test_closure_follows_imports_within_the_package(pkg):
-    assert sorted(module_closure(["toy.a"])) == ["toy.a", "toy.b", "toy.sub"]
+    assert sorted(module_closure(["toy.a"])) == ["toy.a", "toy.b", "toy.d", "toy.sub"]
     # relative imports, one and two levels up
     assert sorted(module_closure(["toy.sub.rel"])) == ["toy.b", "toy.sub", "toy.sub.rel"]
     with pytest.raises(ModuleNotFoundError, match=r"toy\.nothing"):
         module_closure(["toy.nothing"])
+    # a file's imports are read again when it changes (parsed once per content, not per path)
+    (pkg / "a.py").write_text("import toy.c\n")
+    assert sorted(module_closure(["toy.a"])) == ["toy.a", "toy.c"]
 
 
 def test_digest_changes_with_the_code_it_runs_and_only_that(pkg):
