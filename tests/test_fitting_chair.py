@@ -245,9 +245,10 @@ def test_screening_runs_on_a_capped_subset(sim, monkeypatch):
 
 
 def test_the_distance_grid_crops_the_points_the_exact_distances_do(sim):
-    """The crops of the ICP stages and the chamfer read the scan's coarse distance grid and
-    query exact distances only near the margin: the same points as all exact distances, for
-    points on the chair, near it and across the room, at the true pose and off it."""
+    """The crops of the ICP stages and the chamfer read the scan's coarse distance grid, then
+    the exact distances at the centres of the cells the undecided points fall in, and query
+    exact distances only near the margin: the same points as all exact distances, for points
+    on the chair, near it and across the room, at the true pose and off it, with any cell."""
     s = sim("straight")
     scan = load_scan(s["root"] / "chair_scan.obj")
     grid, scene = scan.distance_grid, scan.scene()
@@ -268,10 +269,11 @@ def test_the_distance_grid_crops_the_points_the_exact_distances_do(sim):
     for pose in (truth, off):
         for points in (apply_transform(pose, local), np.asarray(frame, np.float64)):
             for margin in (0.03, 0.05):
-                crop = chair_module._crop(points, scan, scene, pose, margin)
-                assert np.array_equal(crop, chair_module._evaluate(points, scan, scene, pose,
-                                                                   margin)[0])
-                assert 0 < crop.sum() < len(points)
+                exact = chair_module._evaluate(points, scan, scene, pose, margin)[0]
+                assert 0 < exact.sum() < len(points)
+                for cell in (0.005, 0.015, 0.04):
+                    crop = chair_module._crop(points, scan, scene, pose, margin, cell)
+                    assert np.array_equal(crop, exact), (margin, cell)
 
 
 def test_same_result_twice(sim):
