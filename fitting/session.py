@@ -43,6 +43,7 @@ import logging
 import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -531,8 +532,8 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
 
 
 def align_imu(clouds: Sequence[FusedCloud], imu_params: BodyParams, model: BodyModel, *,
-              frames: int = 6, points: int = 800, step_deg: float = 10.0, seed: int = 0
-              ) -> WorldAlignment:
+              frames: int = 6, points: int = 800, step_deg: float = 10.0, seed: int = 0,
+              threads: int = 1) -> WorldAlignment:
     """The rotation about +Y and translation taking the IMU's world onto the clouds'.
 
     The suit's body (``imu_params``: IMU world, any shape) is posed in the ``frames`` frames
@@ -540,7 +541,8 @@ def align_imu(clouds: Sequence[FusedCloud], imu_params: BodyParams, model: BodyM
     the best), the translation is found by a few robust nearest-neighbour steps (median of the
     residuals of cloud points to the body's vertices) and the heading is scored by the mean
     truncated distance (10 cm) of the points to the body. The motion of the body does not need
-    to be large: the body's own shape and orientation decide.
+    to be large: the body's own shape and orientation decide. ``threads``: headings scored at
+    once (the k-d tree queries, their time, release the GIL); the same result with any.
 
     Raises:
         SessionFitError: no frame has points.
@@ -572,10 +574,11 @@ def align_imu(clouds: Sequence[FusedCloud], imu_params: BodyParams, model: BodyM
 
     step = np.deg2rad(step_deg)
     grid = np.arange(0.0, 2 * np.pi, step)
-    scores = [score(y)[0] for y in grid]
-    best = grid[int(np.argmin(scores))]
-    fine = best + np.linspace(-step, step, 21)
-    results = [(score(y), y) for y in fine]
+    with ThreadPoolExecutor(max(1, threads)) as ex:
+        scores = [s for s, _ in ex.map(score, grid)]
+        best = grid[int(np.argmin(scores))]
+        fine = best + np.linspace(-step, step, 21)
+        results = list(zip(ex.map(score, fine), fine, strict=True))
     (s, t), yaw = min(results, key=lambda r: r[0][0])
     deg = float((np.rad2deg(yaw) + 180.0) % 360.0 - 180.0)
     return WorldAlignment(deg, t, s, "clouds")
@@ -772,8 +775,9 @@ def fit_session(session_dir: str | os.PathLike, *,
         pool: where the cameras' passes, the snap, the fits' chunks and the chamfers' and
             reliability's runs of frames go (:func:`couch.pool.spawn_pool`); None: all here.
             The fit is the same either way.
-        threads: threads of this process for the sequence fusion (its spans' gradients), e.g.
-            as many as the pool's workers, which wait meanwhile. The same result with any.
+        threads: threads of this process for the IMU's heading search and the sequence fusion
+            (its spans' gradients), e.g. as many as the pool's workers, which wait meanwhile.
+            The same result with any.
 
     Raises:
         SessionFitError: no IMU recording, no overlap of the IMU with the cameras, no person
@@ -834,7 +838,7 @@ def fit_session(session_dir: str | os.PathLike, *,
     zero = np.zeros(10, np.float32)
     align = align_imu(clouds, imu_body_params(imu_k, None, zero, coarse), coarse,
                       frames=cfg.align_frames, points=cfg.align_points,
-                      step_deg=cfg.yaw_step_deg, seed=bcfg.seed)
+                      step_deg=cfg.yaw_step_deg, seed=bcfg.seed, threads=threads)
     suit = imu_body_params(imu_k, align, zero, coarse)  # the aligned suit, mean shape
     shift = np.zeros((len(keys), 3))
     if cfg.snap_init:

@@ -156,7 +156,8 @@ def _body_params(t: int, rng: np.random.Generator) -> BodyParams:
 
 def test_alignment_recovers_a_known_heading_and_origin():
     """Synthetic: the suit's body in its own world; the 'clouds' are that body's vertices
-    turned by 70° about +Y and moved; the heading search and the joint refinement find both."""
+    turned by 70° about +Y and moved; the heading search and the joint refinement find both.
+    The search scores its headings on two threads to the same result."""
     from couch.fitting.session import _yaw_matrix
     from couch.fitting.session import pose_body as posed
 
@@ -169,6 +170,9 @@ def test_alignment_recovers_a_known_heading_and_origin():
     al = align_imu(clouds, params, coarse, frames=4, points=400)
     assert abs(al.yaw_deg - 70.0) < 1.5
     assert np.linalg.norm(al.translation - true.translation) < 0.02
+    two = align_imu(clouds, params, coarse, frames=4, points=400, threads=2)
+    assert (two.yaw_deg, two.residual) == (al.yaw_deg, al.residual)
+    assert np.array_equal(two.translation, al.translation)
     fitted = true.apply(joints) + rng.normal(0, 0.005, joints.shape)
     w = np.ones(joints.shape[:2])
     w[0, :] = 0.0
