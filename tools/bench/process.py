@@ -3,7 +3,9 @@
 Simulates a session first (not timed; default: 4 cameras, NFOV_2X2BINNED depth, 30 fps, 10 s,
 depth only, seed 5), then runs :func:`couch.process` on it with the cache ignored (``force``)
 and prints the wall time of every stage and of the steps inside it, the recording's duration
-over the total wall time (goal >= 1.0x real time), the CPU time, and the load average.
+over the total wall time (goal >= 1.0x real time), the CPU time of this process and of the
+worker processes (joined when the run ends) with the cores they kept busy on average, and the
+load average.
 
 Run: ``python -m couch.tools.bench.process [SESSION_DIR] [--duration S] [--fps F] [--threads K]
 [--workers N] [--no-report] [--set KEY=VALUE ...]`` (``--set``: ``couch-process``'s, e.g.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -32,10 +35,11 @@ def bench(session: Path, output: Path, report: bool, config: ProcessConfig | Non
           workers: int | None = None) -> None:
     """Process ``session`` into ``output`` (no cache) with ``config`` (None: the default) on
     ``workers`` processes (None: couch-process's default) and print the timings."""
-    cpu0, t0 = time.process_time(), time.perf_counter()
+    cpu0, kids0, t0 = time.process_time(), _children_cpu(), time.perf_counter()
     result = couch.process(session, output, force=True, report=report, config=config,
                            workers=workers)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    kids = _children_cpu() - kids0  # the run's workers: joined when it ends
     if not result.ok:
         print(result.summary())
         raise SystemExit(f"processing failed at {result.fault[0]}: {result.fault[1]}")
@@ -55,9 +59,17 @@ def bench(session: Path, output: Path, report: bool, config: ProcessConfig | Non
           f"recording: {duration / wall:.2f}x real time ({duration / result.seconds:.2f}x "
           f"without the report); {1e3 * wall / data.num_frames:.0f} ms per frame of "
           f"{len(result.calibration.cameras)} cameras")
+    print(f"CPU: {cpu + kids:.1f} s in all, {kids:.1f} s of it in the workers: "
+          f"{(cpu + kids) / wall:.2f} cores busy on average")
     print(f"torch threads {torch.get_num_threads()}, workers {workers or 'default'}, cores "
           f"{os.cpu_count()}, load average "
           f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
+
+
+def _children_cpu() -> float:
+    """User + system CPU seconds of this process's finished children."""
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
 
 
 def main(argv: list[str] | None = None) -> None:
