@@ -29,9 +29,13 @@ after another in this process."""
 
 def _set_threads(threads: int | None, preload: tuple[str, ...] = ()) -> None:
     if threads is not None:
+        import cv2
+        import open3d
         import torch
 
         torch.set_num_threads(threads)
+        open3d.utility.set_max_threads(threads)  # its TBB pool (OMP_NUM_THREADS is not read)
+        cv2.setNumThreads(threads)
     for name in preload:
         importlib.import_module(name)
 
