@@ -1,13 +1,13 @@
 """Process pools for the stages that spread independent work over the cores.
 
 Workers are *spawned*, not forked: torch's and open3d's thread pools do not survive a fork. Each
-worker sets its torch thread count once (one thread by default, so that N workers on N cores do
-not fight over them) and may import modules as it starts (``preload``: a worker's first
-import of torch and open3d takes seconds). :func:`finished` walks the futures as they complete
-and cancels those not yet started when the caller stops early (a failed task or Ctrl-C), so an
-error does not wait for the rest of the queue. :func:`pool_map` is the stages' way to run
-independent tasks on a pool if they are given one (:data:`Pool`), in their own process if not,
-with the same results.
+worker sets the thread count of torch, open3d (TBB), OpenCV and numpy's BLAS once (one thread by
+default, so that N workers on N cores do not fight over them) and may import modules as it
+starts (``preload``: a worker's first import of torch and open3d takes seconds).
+:func:`finished` walks the futures as they complete and cancels those not yet started when the
+caller stops early (a failed task or Ctrl-C), so an error does not wait for the rest of the
+queue. :func:`pool_map` is the stages' way to run independent tasks on a pool if they are given
+one (:data:`Pool`), in their own process if not, with the same results.
 """
 
 from __future__ import annotations
@@ -32,26 +32,29 @@ def _set_threads(threads: int | None, preload: tuple[str, ...] = ()) -> None:
         import cv2
         import open3d
         import torch
+        from threadpoolctl import threadpool_limits
 
         torch.set_num_threads(threads)
         open3d.utility.set_max_threads(threads)  # its TBB pool (OMP_NUM_THREADS is not read)
         cv2.setNumThreads(threads)
+        threadpool_limits(threads)  # numpy's OpenBLAS: its threads start with a large product
     for name in preload:
         importlib.import_module(name)
 
 
-def spawn_pool(workers: int, *, torch_threads: int | None = 1, preload: Sequence[str] = (),
+def spawn_pool(workers: int, *, threads: int | None = 1, preload: Sequence[str] = (),
                start: bool = False) -> ProcessPoolExecutor:
-    """A pool of ``workers`` spawned processes, each with ``torch_threads`` torch threads
-    (None: leave torch's default, e.g. when each task sets its own), each importing the
-    modules ``preload`` as it starts. ``start``: start every worker now (else each starts
-    with the task that needs it), so that their imports run while the caller works."""
+    """A pool of ``workers`` spawned processes, each running torch, open3d, OpenCV and numpy's
+    BLAS on ``threads`` threads (None: leave their defaults, e.g. when each task sets its own),
+    each importing the modules ``preload`` as it starts. ``start``: start every worker now
+    (else each starts with the task that needs it), so that their imports run while the caller
+    works."""
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     pool = ProcessPoolExecutor(max_workers=workers,
                                mp_context=multiprocessing.get_context("spawn"),
                                initializer=_set_threads,
-                               initargs=(torch_threads, tuple(preload)))
+                               initargs=(threads, tuple(preload)))
     if start:
         for _ in range(workers):  # a spawned pool starts a process per task it is given
             pool.submit(int)

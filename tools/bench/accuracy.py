@@ -546,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
                 report(*_timed(*task))
         else:
             # each task sets its own thread count (--threads)
-            with spawn_pool(args.jobs, torch_threads=None) as pool:
+            with spawn_pool(args.jobs, threads=None) as pool:
                 futures: list[Future[tuple[str, SessionAccuracy | str, float]]] = [
                     pool.submit(_timed, *task) for task in tasks]
                 for fut in finished(futures):
