@@ -63,7 +63,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import open3d as o3d
-import trimesh
 from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
@@ -318,6 +317,8 @@ class ChairScan:
         """(K,3,3) rotations (scan → world, Y up) of the scan's stable resting poses on a
         plane, most probable first (``trimesh.poses.compute_stable_poses`` about the area
         centroid; a chair's upright pose need not be the most probable)."""
+        import trimesh  # here: the pool's workers, which import this module, never need it
+
         mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         # its probabilities (unused) take square roots of rounding-negative numbers
         with np.errstate(invalid="ignore"):
