@@ -302,7 +302,9 @@ def _masked_ncc(x: np.ndarray, mx: np.ndarray, y: np.ndarray, my: np.ndarray
     xm, ym = np.where(mx[:, None], x, 0.0), np.where(my[:, None], y, 0.0)
     fx, fy = mx.astype(np.float64)[:, None], my.astype(np.float64)[:, None]
 
-    from scipy.signal import fftconvolve  # here: scipy.signal's import takes 0.4 s
+    # imported here: 0.4 s with the scipy.stats it imports, which the pool's workers (they
+    # import this module) would pay for nothing
+    from scipy.signal import fftconvolve
 
     def corr(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # sum_k a[k] b[k+L]
         return fftconvolve(b, a[::-1], axes=0, mode="full")
@@ -415,7 +417,9 @@ def coarse_offset(grid_time: np.ndarray, kinect_features: np.ndarray, other: _Ot
 def _correlation_time(r: np.ndarray) -> float:
     """1 + 2·Σ autocorrelation (in samples) of residuals r (N,F), over positive lags until the
     first negative one: how many samples one independent sample is worth."""
-    from scipy.signal import fftconvolve  # here: scipy.signal's import takes 0.4 s
+    # imported here: 0.4 s with the scipy.stats it imports, which the pool's workers (they
+    # import this module) would pay for nothing
+    from scipy.signal import fftconvolve
 
     factors = []
     for c in range(r.shape[1]):
