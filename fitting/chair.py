@@ -15,14 +15,16 @@ COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
    sees and taken out of its depth first (:mod:`couch.capture.depth_bias`): the cameras disagreeing
    by a few millimetres on the chair pulled its pose 5 mm off on a simulated armchair.
 2. **global registration** (:func:`global_candidates`) — the frame with the most points is cut
-   into objects (DBSCAN on a coarse copy); every object whose extent fits the scan's is matched
-   against samples of the scan with FPFH features + RANSAC (open3d, seeded through
-   ``o3d.utility.random.seed``, several seeds), each result refined by point-to-plane ICP.
-   The chair stands on the floor (y = 0 of a levelled calibration), so every object also gets
-   starts with the scan in each of its stable resting poses (``trimesh.poses.
-   compute_stable_poses``) as tall as the object, turned about the vertical in ``yaw_step``
-   steps, on the floor at the object's centre: on a near-symmetric armchair RANSAC's four runs
-   all fitted it tilted.
+   into objects (DBSCAN on a coarse copy). The chair stands on the floor (y = 0 of a levelled
+   calibration), so every object whose extent fits the scan's gets starts with the scan in
+   each of its stable resting poses (``trimesh.poses.compute_stable_poses``) as tall as the
+   object, turned about the vertical in ``yaw_step`` steps, on the floor at the object's
+   centre, each refined by point-to-plane ICP. Only when none of those fits and stands (a
+   world not levelled on the floor, a chair on its side) is every object also matched against
+   samples of the scan with FPFH features + RANSAC (open3d, seeded through
+   ``o3d.utility.random.seed``, several seeds; ``ransac_always`` runs it anyway): on every
+   held-out session RANSAC's starts refined to the floor starts' pose, and on a
+   near-symmetric armchair its four runs all fitted it tilted.
    RANSAC alone is 5-30 cm off and a symmetric shape (a stool) fits several ways, so every
    candidate is refined (screened at a coarse voxel first, the best few distinct ones at full
    resolution) and the best ICP fitness wins; candidates that fit as well with a rotation
@@ -128,7 +130,11 @@ class ChairConfig:
         cluster_eps: DBSCAN neighbour distance that cuts a frame into objects.
         min_extent, max_extent: an object may be the chair when its extent (bounding-box
             diagonal) is within these fractions of the scan's.
-        ransac_seeds: RANSAC runs (seeds ``seed`` ...) per object.
+        ransac_seeds: RANSAC runs (seeds ``seed`` ...) per object; 0: none.
+        ransac_always: run RANSAC even when a floor start already fits (``min_fitness``,
+            ``max_rmse``, ``min_points``) and stands on the floor (``floor_gap``). By default
+            RANSAC runs only where none does: on every held-out session its starts refined to
+            the floor starts' pose, and it was a third of the global registration's time.
         ransac_iterations, ransac_confidence: RANSAC convergence.
         seed: base seed of the scan sampling and RANSAC.
         icp_distances: ICP max correspondence distances, coarse to fine. Tracking a static
@@ -190,6 +196,7 @@ class ChairConfig:
     min_extent: float = 0.3
     max_extent: float = 1.3
     ransac_seeds: int = 4
+    ransac_always: bool = False
     ransac_iterations: int = 100000
     ransac_confidence: float = 0.999
     seed: int = 0
@@ -836,23 +843,38 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     scene = scene or scan.scene()
     target = target or scan.target()
     objects, largest = _objects(cloud, scan, cfg)
+    # an object too sparse for the features at ``voxel`` is not the chair
+    objects = [idx for idx in objects if len(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        cloud.points[idx].astype(np.float64))).voxel_down_sample(cfg.voxel).points) >= 10]
+    found = _refined(cloud, scan, [(idx, _floor_starts(scan, cloud.points[idx], cfg))
+                                   for idx in objects], cfg, scene, target, coarse)
+    # RANSAC only where the floor starts find nothing that fits and stands (a world not
+    # levelled on the floor, a chair lying on its side): where they do, RANSAC's starts land
+    # on the same pose (every held-out session) and were a third of the global registration
+    if cfg.ransac_seeds > 0 and (cfg.ransac_always or not any(
+            _good(r, cfg) and _stands(scan, r, cfg) for r in found)):
+        found = _ranked(found + _refined(cloud, scan, _ransac_starts(cloud, scan, objects, cfg),
+                                         cfg, scene, target, coarse))
+    return found, largest
+
+
+def _ransac_starts(cloud: FusedCloud, scan: ChairScan, objects: Sequence[np.ndarray],
+                   cfg: ChairConfig) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+    """(object's indices, (4,4) poses) of FPFH + RANSAC, ``ransac_seeds`` runs per object."""
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.samples))
     src.normals = o3d.utility.Vector3dVector(scan.normals)
     src_down, src_feat = _fpfh(src, cfg.voxel)
     reg = o3d.pipelines.registration
-    groups: list[tuple[np.ndarray | None, list[np.ndarray]]] = []
+    groups = []
     for idx in objects:
         part = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
             cloud.points[idx].astype(np.float64)))
         part.normals = o3d.utility.Vector3dVector(cloud.normals[idx].astype(np.float64))
         tgt_down, tgt_feat = _fpfh(part, cfg.voxel)
-        if len(tgt_down.points) < 10:
-            continue
-        inits = _floor_starts(scan, cloud.points[idx], cfg)
         # the feature matching is the same for every run (open3d's feature-matching RANSAC
         # repeats it, about half of a run's time): match once, run RANSAC on the matches
-        matches = (reg.correspondences_from_features(src_feat, tgt_feat, False)
-                   if cfg.ransac_seeds > 0 else None)
+        matches = reg.correspondences_from_features(src_feat, tgt_feat, False)
+        inits = []
         for k in range(cfg.ransac_seeds):
             # open3d's RANSAC draws from its own global generator: seed it per run
             o3d.utility.random.seed(cfg.seed + k)
@@ -865,7 +887,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
             if res.fitness > 0:
                 inits.append(np.asarray(res.transformation))
         groups.append((idx, inits))
-    return _refined(cloud, scan, groups, cfg, scene, target, coarse), largest
+    return groups
 
 
 def _floor_starts(scan: ChairScan, points: np.ndarray, cfg: ChairConfig) -> list[np.ndarray]:
@@ -951,8 +973,14 @@ def _standing(found: list[FrameResult], scan: ChairScan, cfg: ChairConfig
     when none does or the test is off (the caller reports it)."""
     if cfg.floor_gap is None:
         return found
-    on = [r for r in found if abs(_floor_gap(scan, r.pose)) <= cfg.floor_gap]
+    on = [r for r in found if _stands(scan, r, cfg)]
     return on or found
+
+
+def _stands(scan: ChairScan, r: FrameResult, cfg: ChairConfig) -> bool:
+    """The candidate's lowest point within ``floor_gap`` of the floor (True when the test is
+    off)."""
+    return cfg.floor_gap is None or abs(_floor_gap(scan, r.pose)) <= cfg.floor_gap
 
 
 def _good(r: FrameResult, cfg: ChairConfig) -> bool:

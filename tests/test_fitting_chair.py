@@ -214,6 +214,47 @@ def test_floor_starts_alone_find_the_chair(sim, name):
     assert not global_candidates(clouds[best], scan, ChairConfig(ransac_seeds=0, yaw_step=0))[0]
 
 
+def test_ransac_runs_only_where_no_floor_start_fits_and_stands(sim, monkeypatch):
+    """In a world levelled on the floor the floor starts find the chair and RANSAC does not run
+    (always running it finds the same pose); in one tilted by 20 deg and lifted 30 cm, where
+    no floor start can fit and stand, RANSAC runs and finds the chair."""
+    s = sim("straight")
+    clouds = s["clouds"].clouds
+    frame = clouds[int(np.argmax([len(c) for c in clouds]))]
+    scan = load_scan(s["root"] / "chair_scan.obj")
+    truth = np.array(s["info"]["chair"]["world_from_scan"])
+    runs: list[int] = []
+    real = chair_module._ransac_starts
+
+    def spy(*args, **kwargs):
+        runs.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(chair_module, "_ransac_starts", spy)
+    level, _ = global_candidates(frame, scan)
+    assert not runs
+    always, _ = global_candidates(frame, scan, ChairConfig(ransac_always=True))
+    assert runs
+    for cands in (level, always):
+        err = _pose_errors(cands[0].pose, truth, scan.vertices)
+        assert err["rot_deg"] < 0.5 and err["max_vertex_mm"] < 5.0, err
+    assert _pose_errors(always[0].pose, level[0].pose, scan.vertices)["max_vertex_mm"] < 0.1
+
+    runs.clear()
+    centre = apply_transform(truth, scan.centre[None])[0]
+    tilt = make_transform(Rotation.from_euler("x", 20, degrees=True).as_matrix(), np.zeros(3))
+    move = (make_transform(np.eye(3), centre + np.array([0.0, 0.3, 0.0])) @ tilt
+            @ make_transform(np.eye(3), -centre))
+    tilted = dataclasses.replace(frame, points=apply_transform(move, frame.points).astype(
+        np.float32), normals=(frame.normals @ move[:3, :3].T).astype(np.float32))
+    cands, _ = global_candidates(tilted, scan)
+    assert runs, "RANSAC did not run where no floor start can stand"
+    err = _pose_errors(cands[0].pose, move @ truth, scan.vertices)
+    print(f"tilted world: fitness {cands[0].fitness:.3f}, rotation {err['rot_deg']:.3f} deg, "
+          f"worst vertex {err['max_vertex_mm']:.2f} mm")
+    assert err["rot_deg"] < 0.5 and err["max_vertex_mm"] < 5.0, err
+
+
 def test_screening_runs_on_a_capped_subset(sim, monkeypatch):
     """The global candidates are screened on at most ``screen_max_points`` of an object's
     downsampled points (a sofa's ~16k made the screening a third of the registration); the
