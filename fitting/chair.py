@@ -851,7 +851,7 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     # RANSAC only where the floor starts find nothing that fits and stands (a world not
     # levelled on the floor, a chair lying on its side): where they do, RANSAC's starts land
     # on the same pose (every held-out session) and were a third of the global registration
-    if cfg.ransac_seeds > 0 and (cfg.ransac_always or not any(
+    if objects and cfg.ransac_seeds > 0 and (cfg.ransac_always or not any(
             _good(r, cfg) and _stands(scan, r, cfg) for r in found)):
         found = _ranked(found + _refined(cloud, scan, _ransac_starts(cloud, scan, objects, cfg),
                                          cfg, scene, target, coarse))
