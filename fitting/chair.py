@@ -865,7 +865,7 @@ def _ransac_starts(cloud: FusedCloud, scan: ChairScan, objects: Sequence[np.ndar
     src.normals = o3d.utility.Vector3dVector(scan.normals)
     src_down, src_feat = _fpfh(src, cfg.voxel)
     reg = o3d.pipelines.registration
-    groups = []
+    groups: list[tuple[np.ndarray, list[np.ndarray]]] = []
     for idx in objects:
         part = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
             cloud.points[idx].astype(np.float64)))
