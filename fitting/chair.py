@@ -20,8 +20,8 @@ COUCH placed the chair by hand from multi-view keypoints; here it is automatic:
    each of its stable resting poses (``trimesh.poses.compute_stable_poses``) as tall as the
    object, turned about the vertical in ``yaw_step`` steps, on the floor at the object's
    centre, each refined by point-to-plane ICP. Only when none of those fits and stands (a
-   world not levelled on the floor, a chair on its side) is every object also matched against
-   samples of the scan with FPFH features + RANSAC (open3d, seeded through
+   world not levelled on the floor, a chair tipped against something) is every object also
+   matched against samples of the scan with FPFH features + RANSAC (open3d, seeded through
    ``o3d.utility.random.seed``, several seeds; ``ransac_always`` runs it anyway): on every
    held-out session RANSAC's starts refined to the floor starts' pose, and on a
    near-symmetric armchair its four runs all fitted it tilted.
@@ -849,8 +849,9 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
     found = _refined(cloud, scan, [(idx, _floor_starts(scan, cloud.points[idx], cfg))
                                    for idx in objects], cfg, scene, target, coarse)
     # RANSAC only where the floor starts find nothing that fits and stands (a world not
-    # levelled on the floor, a chair lying on its side): where they do, RANSAC's starts land
-    # on the same pose (every held-out session) and were a third of the global registration
+    # levelled on the floor, a chair tipped against something, in none of its resting poses):
+    # where they do, RANSAC's starts land on the same pose (every held-out session) and were a
+    # third of the global registration
     if objects and cfg.ransac_seeds > 0 and (cfg.ransac_always or not any(
             _good(r, cfg) and _stands(scan, r, cfg) for r in found)):
         found = _ranked(found + _refined(cloud, scan, _ransac_starts(cloud, scan, objects, cfg),
