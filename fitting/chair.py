@@ -134,7 +134,7 @@ class ChairConfig:
         ransac_always: run RANSAC even when a floor start already fits (``min_fitness``,
             ``max_rmse``, ``min_points``) and stands on the floor (``floor_gap``). By default
             RANSAC runs only where none does: on every held-out session its starts refined to
-            the floor starts' pose, and it was a third of the global registration's time.
+            the floor starts' pose, and it was two fifths of the global registration's time.
         ransac_iterations, ransac_confidence: RANSAC convergence.
         seed: base seed of the scan sampling and RANSAC.
         icp_distances: ICP max correspondence distances, coarse to fine. Tracking a static
@@ -850,8 +850,8 @@ def global_candidates(cloud: FusedCloud, scan: ChairScan, config: ChairConfig | 
                                    for idx in objects], cfg, scene, target, coarse)
     # RANSAC only where the floor starts find nothing that fits and stands (a world not
     # levelled on the floor, a chair tipped against something, in none of its resting poses):
-    # where they do, RANSAC's starts land on the same pose (every held-out session) and were a
-    # third of the global registration
+    # where they do, RANSAC's starts land on the same pose (every held-out session) and were two
+    # fifths of the global registration
     if objects and cfg.ransac_seeds > 0 and (cfg.ransac_always or not any(
             _good(r, cfg) and _stands(scan, r, cfg) for r in found)):
         found = _ranked(found + _refined(cloud, scan, _ransac_starts(cloud, scan, objects, cfg),
