@@ -294,6 +294,14 @@ def _as_real(r: np.ndarray, is_c: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- coarse
 
 
+def _fftconvolve(a: np.ndarray, b: np.ndarray, **kwargs: object) -> np.ndarray:
+    """``scipy.signal.fftconvolve``, imported at its first use: scipy.signal costs 0.4 s with
+    the scipy.stats it imports, which the pool's workers (they import this module) never need."""
+    from scipy.signal import fftconvolve
+
+    return fftconvolve(a, b, **kwargs)
+
+
 def _masked_ncc(x: np.ndarray, mx: np.ndarray, y: np.ndarray, my: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Normalised cross-correlation of x (N,F) against y (M,F) at every integer lag L
@@ -302,12 +310,8 @@ def _masked_ncc(x: np.ndarray, mx: np.ndarray, y: np.ndarray, my: np.ndarray
     xm, ym = np.where(mx[:, None], x, 0.0), np.where(my[:, None], y, 0.0)
     fx, fy = mx.astype(np.float64)[:, None], my.astype(np.float64)[:, None]
 
-    # imported here: 0.4 s with the scipy.stats it imports, which the pool's workers (they
-    # import this module) would pay for nothing
-    from scipy.signal import fftconvolve
-
     def corr(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # sum_k a[k] b[k+L]
-        return fftconvolve(b, a[::-1], axes=0, mode="full")
+        return _fftconvolve(b, a[::-1], axes=0, mode="full")
 
     n = np.round(corr(fx, fy)[:, 0].real)
     sx = corr(np.conj(xm), fy)
@@ -417,17 +421,13 @@ def coarse_offset(grid_time: np.ndarray, kinect_features: np.ndarray, other: _Ot
 def _correlation_time(r: np.ndarray) -> float:
     """1 + 2·Σ autocorrelation (in samples) of residuals r (N,F), over positive lags until the
     first negative one: how many samples one independent sample is worth."""
-    # imported here: 0.4 s with the scipy.stats it imports, which the pool's workers (they
-    # import this module) would pay for nothing
-    from scipy.signal import fftconvolve
-
     factors = []
     for c in range(r.shape[1]):
         x = r[:, c] - r[:, c].mean()
         v = float(x @ x)
         if v <= 0 or len(x) < 8:
             continue
-        ac = fftconvolve(x, x[::-1], mode="full")[len(x) - 1:] / v
+        ac = _fftconvolve(x, x[::-1], mode="full")[len(x) - 1:] / v
         neg = np.flatnonzero(ac < 0)
         stop = int(neg[0]) if len(neg) else len(ac)
         factors.append(1.0 + 2.0 * float(ac[1:stop].sum()))
