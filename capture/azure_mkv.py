@@ -108,6 +108,7 @@ import numpy as np
 from couch.atomic import atomic_path
 
 from .azure_calibration import COLOR_RESOLUTIONS, DEPTH_MODES, KinectCalibration
+from .binning import BINNED_MODES, bin_depth, bin_ir
 
 __all__ = [
     "AzureMkvRecording",
@@ -784,16 +785,24 @@ class AzureMkvRecording:
         frame_period_ns: DefaultDuration of the video tracks.
         start_offset_ns: ``K4A_START_OFFSET_NS`` (0 if absent).
         serial: ``K4A_DEVICE_SERIAL_NUMBER`` or None.
-        depth_mode: e.g. ``NFOV_UNBINNED`` (``OFF`` without depth/IR).
+        depth_mode: e.g. ``NFOV_UNBINNED`` (``OFF`` without depth/IR): the recorded mode.
+        depth_binned: the depth and IR images are read binned 2x2 (``depth_binning=2`` on a
+            full-resolution recording; :mod:`couch.capture.binning`): captures then hold the
+            binned mode's image size and :attr:`calibration` is the binned mode's.
         color_mode: e.g. ``MJPG_720P`` (``OFF`` without colour).
         color_resolution: e.g. ``720P`` (from the COLOR track size) or ``OFF``.
         depth_delay_ns, wired_sync_mode, subordinate_delay_ns: the sync tags (with SDK defaults).
         duration_us: the Info Duration in µs (block time of the last frame), or None.
     """
 
-    def __init__(self, path: Path, *, strict: bool = False) -> None:
+    def __init__(self, path: Path, *, strict: bool = False, depth_binning: int = 1) -> None:
+        if depth_binning not in (1, 2):
+            raise ValueError(f"depth_binning must be 1 (as recorded) or 2 (2x2 blocks), got "
+                             f"{depth_binning!r}")
         self.path = path
         self.strict = strict
+        self.depth_binning = depth_binning
+        self.depth_binned = False
         self.skipped: list[SkippedFrame] = []
         self.warnings: list[str] = []
         self.tags: dict[str, str] = {}
@@ -995,6 +1004,7 @@ class AzureMkvRecording:
             raise self._fail(f"unsupported K4A_DEPTH_MODE {depth_mode!r}; expected one of "
                              f"{sorted(DEPTH_MODES)}")
         self.depth_mode = depth_mode
+        self.depth_binned = self.depth_binning == 2 and depth_mode in BINNED_MODES
         for name in ("DEPTH", "IR"):
             t = self.tracks.get(name)
             if t is None:
@@ -1061,6 +1071,8 @@ class AzureMkvRecording:
                 f"intrinsics and extrinsics")
         else:
             cal_depth = "WFOV_UNBINNED" if self.depth_mode == "OFF" else self.depth_mode
+            if self.depth_binned:
+                cal_depth = BINNED_MODES[cal_depth]
             cal_color = "3072P" if self.color_resolution == "OFF" else self.color_resolution
             try:
                 self._calibration = KinectCalibration.from_json(
@@ -1421,6 +1433,8 @@ class AzureMkvRecording:
                     continue
                 images[kind] = (np.frombuffer(block.data, dtype=">u2")
                                 .reshape(t.height, t.width).astype(np.uint16))
+                if self.depth_binned:
+                    images[kind] = (bin_depth if kind == "DEPTH" else bin_ir)(images[kind])
         if not images:
             return None
         if "DEPTH" in stamps:
@@ -1438,7 +1452,7 @@ class AzureMkvRecording:
 
 
 def open_azure_mkv(path: str | os.PathLike, *, require_calibration: bool = True,
-                   strict: bool = False) -> AzureMkvRecording:
+                   strict: bool = False, depth_binning: int = 1) -> AzureMkvRecording:
     """Open a k4arecorder ``.mkv`` for streaming.
 
     Reads the header (tracks, tags, calibration attachment) now; frames are read when the
@@ -1449,12 +1463,16 @@ def open_azure_mkv(path: str | os.PathLike, *, require_calibration: bool = True,
         require_calibration: raise now if ``calibration.json`` is missing or invalid (otherwise
             only accessing ``.calibration`` raises).
         strict: raise on the first unusable frame instead of skipping and counting it.
+        depth_binning: 2: read a full-resolution recording's depth and IR binned 2x2, with the
+            binned mode's calibration (:mod:`couch.capture.binning`); a binned or depth-less
+            recording is read as it is. 1: as recorded.
 
     Raises:
         KinectFormatError: not Matroska, truncated or corrupt header, no Azure Kinect tracks,
             unsupported track format, missing/invalid calibration (``require_calibration``).
+        ValueError: ``depth_binning`` not 1 or 2.
     """
-    rec = AzureMkvRecording(Path(path), strict=strict)
+    rec = AzureMkvRecording(Path(path), strict=strict, depth_binning=depth_binning)
     if require_calibration and not rec.has_calibration:
         raise KinectFormatError(rec._calibration_error or f"{path}: no calibration")
     return rec

@@ -61,6 +61,8 @@ class CameraClouds:
             ``CloudConfig.min_points`` survived (as :func:`fuse_clouds` leaves a camera out).
         far: (H,W) uint16 mm, the farthest corrected depth of each pixel over the kept frames
             (0: never valid), or None when not asked for.
+        depth_range: (min, max) metres of Z the camera measures (its recorded mode's, binned
+            or not: :attr:`CameraSegmentation.depth_range`), or None.
     """
 
     serial: str
@@ -74,6 +76,7 @@ class CameraClouds:
     points: list[np.ndarray]
     normals: list[np.ndarray]
     far: np.ndarray | None = None
+    depth_range: tuple[float, float] | None = None
 
     def frame(self, timestamp_us: int) -> int | None:
         """Index of the kept frame with this device timestamp, or None."""
@@ -165,7 +168,8 @@ def camera_clouds(recording: str | os.PathLike, world_from_depth: np.ndarray, *,
                         world_from_depth=pose, background=seg.background.depth,
                         skipped=len(seg.skipped), depth_bias=bias,
                         timestamps=np.array([f.timestamp_us for f in frames], np.int64),
-                        points=points, normals=normals, far=farthest)
+                        points=points, normals=normals, far=farthest,
+                        depth_range=seg.depth_range)
 
 
 def join_cameras(parts: Sequence[CameraClouds], frames: Sequence[int | None], time: float

@@ -347,7 +347,8 @@ def _us(seconds: float) -> int:
 
 def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
                        kinect: int | None = None, strict: bool = False,
-                       require_calibration: bool = True) -> KinectStream:
+                       require_calibration: bool = True, depth_binning: int = 1
+                       ) -> KinectStream:
     """Open one Kinect camera's frames for streaming: an Azure ``.mkv`` or a BEHAVE sequence.
 
     Reads the header now (MKV tracks, tags and calibration; BEHAVE ``info.json``, calibrations
@@ -364,6 +365,9 @@ def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
         require_calibration: MKV only: raise now if ``calibration.json`` is missing or invalid
             (False: frames can be read, :attr:`KinectStream.calibration` raises). A BEHAVE
             sequence always needs its calibration files.
+        depth_binning: MKV only: 2 reads a full-resolution recording's depth binned 2x2
+            (:func:`~couch.capture.azure_mkv.open_azure_mkv`); a BEHAVE sequence's depth, in
+            the colour camera's grid, is read as it is.
 
     Raises:
         KinectFormatError: the path does not exist or is neither; the header is unreadable
@@ -388,7 +392,8 @@ def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
     if kinect is not None:
         raise ValueError(f"{p}: kinect={kinect} selects a camera of a BEHAVE sequence; an .mkv "
                          f"file holds one camera")
-    rec = open_azure_mkv(p, require_calibration=require_calibration, strict=strict)
+    rec = open_azure_mkv(p, require_calibration=require_calibration, strict=strict,
+                         depth_binning=depth_binning)
     stream = KinectStream(p, rec, kinect=None, strict=strict)
     if serial is not None and str(serial) != stream.serial:
         raise KinectFormatError(f"{p}: recording of camera {stream.serial}, not of camera "

@@ -73,7 +73,7 @@ from scipy.spatial import cKDTree
 
 from couch.geometry import apply_transform, invert_transform
 
-from .azure_calibration import KinectCalibration
+from .azure_calibration import DEPTH_RANGE_M, KinectCalibration
 from .azure_mkv import open_azure_mkv
 from .registration import pixel_rays, project_points, register_depth_to_color
 from .session import SessionLayoutError, session_files
@@ -143,6 +143,14 @@ class SegmentationConfig:
     #                               evenly spaced (a 95 % share to ±1.3 %; 0: on all of them)
     max_background_frames: int = 30  # a recording's own background: at most this many of its
     #                                  frames, evenly spaced
+    # 2: full-resolution recordings are read binned 2x2, as the camera's binned modes
+    # (couch.capture.binning): a quarter of the pixels for every per-pixel step. 1: as recorded
+    depth_binning: int = 1
+
+    def __post_init__(self) -> None:
+        if self.depth_binning not in (1, 2):
+            raise ValueError(f"SegmentationConfig.depth_binning must be 1 or 2, got "
+                             f"{self.depth_binning!r}")
 
 
 @dataclasses.dataclass
@@ -231,8 +239,8 @@ class BackgroundModel:
         return cls(depth=depth, near=near, frames=sum(m.frames for m in models))
 
 
-def _depth_frames(path: Path) -> Iterator[np.ndarray | None]:
-    rec = open_azure_mkv(path)
+def _depth_frames(path: Path, depth_binning: int = 1) -> Iterator[np.ndarray | None]:
+    rec = open_azure_mkv(path, depth_binning=depth_binning)
     if "DEPTH" not in rec.tracks:
         raise SegmentationError(f"{path}: the recording has no DEPTH stream")
     for cap in rec:
@@ -253,7 +261,8 @@ def background_from_recordings(paths: Iterable[str | os.PathLike],
     models = []
     for p in paths:
         try:
-            models.append(BackgroundModel.from_frames(_depth_frames(Path(p)), config))
+            models.append(BackgroundModel.from_frames(
+                _depth_frames(Path(p), (config or SegmentationConfig()).depth_binning), config))
         except SegmentationError as e:
             raise SegmentationError(f"{p}: {e}") from None
     return BackgroundModel.combine(models)
@@ -782,6 +791,9 @@ class CameraSegmentation:
         frames: one :class:`FrameSegmentation` per usable capture, in recording order.
         skipped: ``(capture index, reason)`` of captures without usable depth (dropped depth
             image, all zeros), counted rather than silently lost.
+        depth_range: (min, max) metres of Z the camera measures in its recorded mode
+            (``DEPTH_RANGE_M``; a full-resolution recording read binned keeps its own), or
+            None for a mode without one.
     """
 
     serial: str
@@ -790,6 +802,7 @@ class CameraSegmentation:
     background: BackgroundModel
     frames: list[FrameSegmentation]
     skipped: list[tuple[int, str]]
+    depth_range: tuple[float, float] | None = None
 
 
 def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
@@ -834,7 +847,7 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     """
     cfg = config or SegmentationConfig()
     path = Path(path)
-    rec = open_azure_mkv(path)
+    rec = open_azure_mkv(path, depth_binning=cfg.depth_binning)
     if "DEPTH" not in rec.tracks:
         raise SegmentationError(f"{path}: the recording has no DEPTH stream (depth mode "
                                 f"{rec.depth_mode}); segmentation needs depth")
@@ -945,4 +958,5 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
         log.warning("%s: skipped %d capture(s) without usable depth", path, len(skipped))
     return CameraSegmentation(serial=rec.serial or path.stem, calibration=calib,
                               world_from_depth=world_from_depth, background=background,
-                              frames=frames, skipped=skipped)
+                              frames=frames, skipped=skipped,
+                              depth_range=DEPTH_RANGE_M.get(rec.depth_mode))

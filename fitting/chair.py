@@ -68,7 +68,6 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
-from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics
 from couch.capture.camera_clouds import camera_clouds, join_cameras, join_row
 from couch.capture.depth_bias import DepthBias, unmeasured_warnings
@@ -594,7 +593,7 @@ def chair_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict[s
     # every frame does not count as missed
     views = [CameraView(p.world_from_depth, p.calibration.depth,
                         p.far.astype(np.float32) * np.float32(1e-3), margin=-cfg.seen_tolerance,
-                        depth_range=DEPTH_RANGE_M.get(p.calibration.depth_mode),
+                        depth_range=p.depth_range,
                         max_incidence_deg=80.0) for p in parts]
     return ChairClouds(files.root, sel, np.asarray(times), clouds, views, warnings,
                        [p.depth_bias for p in parts], list(serials))

@@ -591,8 +591,10 @@ class _Runner:
         """The session synchronised (once per run) and the seconds this call took."""
         t0 = wallclock.perf_counter()
         if self._sync is None:
-            self._sync = sync_session(self.view, extrinsics=extrinsics, progress=self.progress,
-                                      pool=self.pool)
+            self._sync = sync_session(
+                self.view, extrinsics=extrinsics,
+                depth_binning=self.cfg.fit.depth_binning, progress=self.progress,
+                pool=self.pool)
         return self._sync, wallclock.perf_counter() - t0
 
     # -- stages

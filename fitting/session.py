@@ -51,7 +51,6 @@ import torch
 from scipy.spatial import cKDTree
 
 from couch.body import BodyModel
-from couch.capture.azure_calibration import DEPTH_RANGE_M
 from couch.capture.calibration import Extrinsics, calibrate_session
 from couch.capture.camera_clouds import camera_clouds, join_row
 from couch.capture.depth_bias import unmeasured_warnings
@@ -160,6 +159,11 @@ class SessionFitConfig:
         if not (isinstance(self.fit_stride, int) and self.fit_stride >= 1):
             raise ValueError(f"SessionFitConfig.fit_stride must be an integer >= 1, got "
                              f"{self.fit_stride!r}")
+
+    @property
+    def depth_binning(self) -> int:
+        """How the depth is read (``SegmentationConfig.depth_binning``; 1 without one)."""
+        return (self.segmentation or SegmentationConfig()).depth_binning
 
 
 @dataclasses.dataclass(frozen=True)
@@ -523,7 +527,7 @@ def session_clouds(session_dir: str | os.PathLike, extrinsics: Extrinsics | dict
     clouds = [join_row(parts, kinect.frame_table[r], track_stamps, float(kinect.time[r]))
               for r in rows]
     views = [CameraView(p.world_from_depth, p.calibration.depth, p.background,
-                        depth_range=DEPTH_RANGE_M.get(p.calibration.depth_mode),
+                        depth_range=p.depth_range,
                         max_incidence_deg=80.0) for p in parts]
     return clouds, views, warnings
 
@@ -792,8 +796,9 @@ def fit_session(session_dir: str | os.PathLike, *,
 
     t0 = time.perf_counter()
     ext = extrinsics if extrinsics is not None else calibrate_session(root)
-    ss = sync if sync is not None else sync_session(root, extrinsics=ext, progress=progress,
-                                                        pool=pool)
+    ss = sync if sync is not None else sync_session(
+        root, extrinsics=ext, depth_binning=cfg.depth_binning, progress=progress,
+        pool=pool)
     warnings += [f"sync: {w}" for w in ss.kinect.warnings]
     if ss.resampled is None or ss.imu_clock is None or ss.imu is None:
         raise SessionFitError(f"{root}: the session has no IMU recording (imu/*.mvnx); the body "

@@ -17,6 +17,7 @@ import numpy as np
 from couch.capture.calibration import Extrinsics, calibrate_session
 from couch.capture.imu import ImuMotion, mvnx_to_smpl
 from couch.capture.mvnx import read_mvnx
+from couch.capture.segmentation import SegmentationConfig
 from couch.capture.session import session_files
 from couch.pool import Pool
 from couch.sync.clock import ClockEstimate, ClockModel, ClockSyncConfig
@@ -80,7 +81,8 @@ def sync_session(session_dir: str | os.PathLike, *,
                  kinect_config: KinectSyncConfig | None = None,
                  clock_config: ClockSyncConfig | None = None,
                  initial: ClockModel | None = None, search_s: float | None = None,
-                 progress: bool = False, pool: Pool = None) -> SessionSync:
+                 depth_binning: int = 1, progress: bool = False, pool: Pool = None
+                 ) -> SessionSync:
     """Synchronise a session folder (``couch-simulate``'s layout / ``session.json``).
 
     Args:
@@ -89,6 +91,9 @@ def sync_session(session_dir: str | os.PathLike, *,
             calibrate_session`).
         track_config, kinect_config, clock_config: knobs of the steps.
         initial, search_s: prior IMU clock and search half-width (see :func:`sync_imu`).
+        depth_binning: 2: the cameras' passes read full-resolution depth binned 2x2 (a quarter
+            of the pixels; the tracks are in world coordinates either way), unless
+            ``track_config`` says otherwise. 1: as recorded.
         progress: progress bars.
         pool: where the cameras' passes run (:func:`couch.pool.spawn_pool`); None: here.
 
@@ -97,6 +102,8 @@ def sync_session(session_dir: str | os.PathLike, *,
     """
     root = Path(session_dir)
     ext = extrinsics if extrinsics is not None else calibrate_session(root)
+    if track_config is None and depth_binning != 1:
+        track_config = TrackConfig(segmentation=SegmentationConfig(depth_binning=depth_binning))
     tracks = session_tracks(root, ext, config=track_config, progress=progress, pool=pool)
     kinect = sync_tracks(tracks, config=kinect_config)
     for w in kinect.warnings:

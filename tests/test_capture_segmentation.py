@@ -39,6 +39,7 @@ import pytest
 from couch.body import load_body_model
 from couch.capture.azure_mkv import AzureMkvWriter, open_azure_mkv
 from couch.capture.pointcloud import FusedCloud, fuse_clouds
+from couch.capture.registration import pixel_rays
 from couch.capture.segmentation import (
     BackgroundModel,
     ChairModel,
@@ -64,7 +65,8 @@ CONFIGS = {5: dataclasses.replace(BASE, duration=1.6, seed=5),
            7: dataclasses.replace(BASE, duration=0.8, charuco_poses=1, seed=7)}
 
 
-def _segment(out: Path, info: dict, chair: ChairModel, empty_room: bool) -> list:
+def _segment(out: Path, info: dict, chair: ChairModel, empty_room: bool,
+             config: SegmentationConfig | None = None) -> list:
     """Every camera's segmentation, with the empty-room background or the fallback."""
     segs = []
     for cam in info["cameras"]:
@@ -75,7 +77,7 @@ def _segment(out: Path, info: dict, chair: ChairModel, empty_room: bool) -> list
             assert kwargs["empty_room"] is not None
         segs.append(segment_recording(out / "kinect" / f"{serial}.mkv",
                                       np.asarray(cam["world_from_depth"]), chair=chair,
-                                      **kwargs))
+                                      config=config, **kwargs))
     return segs
 
 
@@ -130,6 +132,63 @@ def test_person_masks_without_an_empty_room(session):
     ious = _ious(session, segs)
     print(f"fallback background: IoU mean {ious.mean():.4f}, min {ious.min():.4f}")
     assert ious.mean() >= 0.95 and ious.min() >= 0.95
+
+
+def test_full_resolution_depth_read_binned(session):
+    """``depth_binning=2``: a binned pixel is its 2x2 block of full-resolution pixels, which
+    the binned mode's intrinsics place at the block's centre (its point is the mean of the
+    block's four where they lie on one surface; half a pixel off would put it millimetres
+    away), and the person masks from binned depth still match the simulator's."""
+    if session["cfg"].seed != 5:
+        pytest.skip("one session is enough")
+    out, info = session["out"], session["info"]
+    path = out / "kinect" / f"{info['cameras'][0]['serial']}.mkv"
+    full, binned = open_azure_mkv(path), open_azure_mkv(path, depth_binning=2)
+    assert binned.depth_binned and not full.depth_binned
+    assert binned.depth_mode == full.depth_mode == "NFOV_UNBINNED"
+    assert binned.calibration.depth_mode == "NFOV_2X2BINNED"
+    f, b = next(iter(full)), next(iter(binned))
+    assert b.depth_mm.shape == (288, 320) and (b.ir is None or b.ir.shape == (288, 320))
+
+    def lift(depth: np.ndarray, intr, shift: float = 0.0) -> np.ndarray:
+        rays = pixel_rays(dataclasses.replace(intr, cx=intr.cx + shift))
+        z = depth.astype(np.float64) * 1e-3
+        pts = np.concatenate([rays * z[..., None], z[..., None]], axis=-1)
+        pts[depth == 0] = np.nan
+        return pts
+
+    blocks = lift(f.depth_mm, full.calibration.depth).reshape(288, 2, 320, 2, 3).mean((1, 3))
+    offsets = []
+    for shift in (0.0, 0.5):
+        d = np.linalg.norm(lift(b.depth_mm, binned.calibration.depth, shift) - blocks, axis=-1)
+        offsets.append(np.median(d[np.isfinite(d)]))
+    print(f"binned pixels from their blocks' mean point: median {offsets[0] * 1000:.2f} mm "
+          f"({offsets[1] * 1000:.2f} mm half a pixel off)")
+    assert offsets[0] < 0.001 < 0.002 < offsets[1]
+
+    segs = _segment(out, info, session["chair"], empty_room=True,
+                    config=SegmentationConfig(depth_binning=2))
+    assert all(s.calibration.depth.width == 320 and s.depth_range == (0.5, 3.86) for s in segs)
+    ious = _ious(session, segs)
+    print(f"binned depth: IoU mean {ious.mean():.4f}, min {ious.min():.4f}")
+    # a quarter of the pixels: the masks' edges are coarser (0.957 / 0.947 when written)
+    assert ious.mean() >= 0.95 and ious.min() >= 0.94
+
+    # the sync's head-top tracks read binned: the same heads, from a quarter of the points
+    from couch.sync import TrackConfig, session_tracks
+
+    poses = {c["serial"]: np.asarray(c["world_from_depth"]) for c in info["cameras"]}
+    tracks = [session_tracks(out, poses, config=TrackConfig(
+        segmentation=SegmentationConfig(depth_binning=b))) for b in (1, 2)]
+    found = np.array([[np.isfinite(t.top[:, 1]).sum() for t in ts] for ts in tracks])
+    print(f"head tops found per camera, full / binned: {found.tolist()}")
+    # a top needs a few points in its band: binned, a camera that sees little of the head
+    # finds fewer (21 / 18 when written)
+    assert found[1].sum() >= 0.8 * found[0].sum()
+    for t1, t2 in zip(*tracks, strict=True):
+        both = np.isfinite(t1.top[:, 1]) & np.isfinite(t2.top[:, 1])
+        assert np.abs(t2.top[both] - t1.top[both]).max() < 0.02
+        assert 3 * t2.points.mean() < t1.points.mean() < 5 * t2.points.mean()
 
 
 def test_segmenting_some_captures_gives_their_masks_unchanged(session):
@@ -339,7 +398,6 @@ def test_normals_of_a_tilted_plane_and_an_outlier_dropped():
     mm, as recorded: ~1° of slope noise over a 5x5 window) gives its normal facing the camera;
     a 5 cm spike is dropped."""
     from couch.capture.pointcloud import CloudConfig, camera_cloud
-    from couch.capture.registration import pixel_rays
     from couch.tools.sim.kinect import random_calibration
 
     calib = random_calibration(np.random.default_rng(0))

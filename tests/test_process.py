@@ -398,6 +398,7 @@ def test_cli(tmp_path):
     for args, message in ((["--stages", "bogus"], "unknown stage"),
                           (["--frames", "9:3"], "START < STOP"),
                           (["--fit-stride", "0"], "--fit-stride must be >= 1"),
+                          (["--depth-binning", "3"], "invalid choice"),
                           (["--workers", "0"], "--workers must be >= 1")):
         bad = subprocess.run([str(exe), str(FIXTURE), "-o", str(tmp_path / "o"), *args],
                              capture_output=True, text=True, timeout=600)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from couch.capture.calibration import Extrinsics
+from couch.capture.segmentation import SegmentationConfig
 from couch.fitting.pipeline import (
     STAGES,
     PipelineResult,
@@ -96,6 +97,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="fit the body to the cameras on every K-th frame, the suit's motion "
                          "carrying the frames between (default 1: every frame; K times less "
                          "per-frame work; same as --set fit.fit_stride=K)")
+    ap.add_argument("--depth-binning", type=int, default=None, choices=(1, 2),
+                    help="2: read full-resolution depth (NFOV/WFOV unbinned) binned 2x2, as the "
+                         "camera's binned modes do: about half the time on such recordings; "
+                         "binned recordings are read as they are (default 1; same as --set "
+                         "fit.segmentation.depth_binning=2)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change one setting of the processing config (repeatable), e.g. "
                          "fit.body.clothing_margin=0.005 or contacts.enter_distance=0.025; the "
@@ -120,6 +126,11 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--fit-stride must be >= 1")
         config = dataclasses.replace(config, fit=dataclasses.replace(
             config.fit, fit_stride=args.fit_stride))
+    if args.depth_binning is not None and args.depth_binning != config.fit.depth_binning:
+        config = dataclasses.replace(config, fit=dataclasses.replace(
+            config.fit, segmentation=dataclasses.replace(
+                config.fit.segmentation or SegmentationConfig(),
+                depth_binning=args.depth_binning)))
     try:
         config = with_overrides(config, args.set)
     except ValueError as exc:
