@@ -225,6 +225,45 @@ def test_motion_only_dataset(tmp_path):
         simulate_motion_dataset(tmp_path / "bad", 1, seed=5, progress=False, workers=0)
 
 
+def test_motion_only_dataset_resumes_where_it_stopped(tmp_path, monkeypatch):
+    # A run stopped after its first slot keeps that slot; the re-run draws only the rest, and a
+    # finished folder asked for one more sequence draws only that one.
+    from couch.tools.sim import session
+
+    drawn: list[int] = []
+    stop_at = {1}  # Ctrl-C as slot 1 begins
+    real_slot = session._motion_slot
+
+    def slot(i, *args):
+        if i in stop_at:
+            raise KeyboardInterrupt
+        drawn.append(i)
+        return real_slot(i, *args)
+
+    monkeypatch.setattr(session, "_motion_slot", slot)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_motion_dataset(tmp_path, 2, seed=5, duration=4.0, progress=False)
+    assert drawn == [0] and not (tmp_path / "index.json").exists()
+    first = (tmp_path / "motion_00000.h5").stat().st_mtime_ns
+    stop_at.clear()
+    summary = simulate_motion_dataset(tmp_path, 2, seed=5, duration=4.0, progress=False)
+    assert drawn == [0, 1] and summary["resumed"] == 1
+    assert (tmp_path / "motion_00000.h5").stat().st_mtime_ns == first
+    assert [s["file"] for s in summary["sequences"]] == ["motion_00000.h5", "motion_00001.h5"]
+    assert not (tmp_path / session.JOURNAL).exists()
+    more = simulate_motion_dataset(tmp_path, 3, seed=5, duration=4.0, progress=False)
+    assert drawn == [0, 1, 2] and more["resumed"] == 2
+    assert more["sequences"][:2] == summary["sequences"]
+    # another request in the same folder is refused, naming what differs
+    with pytest.raises(ValueError, match=r"index\.json: .*seed 5 \(now 6\)"):
+        simulate_motion_dataset(tmp_path, 3, seed=6, duration=4.0, progress=False)
+    with pytest.raises(ValueError, match=r"duration 4\.0 \(now None\)"):
+        simulate_motion_dataset(tmp_path, 3, seed=5, progress=False)
+    (tmp_path / "index.json").write_text('{"seed": 5, "fps": 30.0, "sequences": []}')
+    with pytest.raises(ValueError, match="did not record what it was asked for"):
+        simulate_motion_dataset(tmp_path, 3, seed=5, duration=4.0, progress=False)
+
+
 def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path):
     # `couch-simulate --motion-only --fps 15` wrote 30 fps motions until session 42
     from couch.schema import read_processed

@@ -19,7 +19,9 @@ Output folder (one session)::
 
 ``--motion-only --sequences N`` writes N ground-truth motions (``motion_NNNNN.h5`` in the same
 schema, each with its own subject, chair and interaction) without rendering: training data;
-``--workers N`` draws them on N processes, each sequence from its own stream of the seed.
+``--workers N`` draws them on N processes, each sequence from its own stream of the seed; a
+stopped run goes on where it stopped when run again (``index.partial.jsonl`` lists the slots
+finished, ``index.json`` replaces it at the end; ``--no-resume`` starts over).
 Everything is deterministic given ``--seed``; ``--no-color`` skips rendering colour (most of
 the simulation time) and leaves every depth frame, the calibration captures, the IMU and the
 truth as the same seed writes them with colour.
@@ -191,48 +193,128 @@ def _motion_slot(i: int, stream: np.random.SeedSequence, out: Path, fps: float,
                "duration_s": round(float(times[-1]), 3), "rejected_draws": seq.rejected}
 
 
+#: Slots of a ``--motion-only`` folder finished so far, one JSON line each after a header line
+#: with the request; ``index.json`` replaces it when every slot is done.
+JOURNAL = "index.partial.jsonl"
+
+
+def _done_slots(out: Path, request: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    """The slots of ``out`` an earlier run of the same ``request`` finished (written, or skipped
+    after every draw was rejected), from its ``index.json`` and its :data:`JOURNAL`; a slot
+    whose file is gone is not done. ValueError naming the file when the folder holds another
+    request's sequences (another seed, rate, interaction, chair, duration or draw limit)."""
+    done: dict[int, dict[str, Any]] = {}
+    index, journal = out / "index.json", out / JOURNAL
+    if index.is_file():
+        try:
+            summary = json.loads(index.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{index}: cannot read it ({e}); use --no-resume") from e
+        if "request" not in summary:
+            raise ValueError(f"{index}: written by a couch-simulate that did not record what "
+                             "it was asked for; use --no-resume to draw the folder anew")
+        _check_same_request(index, summary["request"], request)
+        try:
+            done.update({_slot_of(e): e for e in summary["sequences"]})
+            done.update({e["sequence"]: e for e in summary["skipped"]})
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{index}: not an index couch-simulate wrote ({e!r}); "
+                             "use --no-resume") from e
+    if journal.is_file():
+        lines = journal.read_text().splitlines()
+        try:
+            header = json.loads(lines[0]) if lines else None
+        except ValueError:
+            header = None
+        if not isinstance(header, dict) or "request" not in header:
+            raise ValueError(f"{journal}: no request header on its first line; use --no-resume")
+        _check_same_request(journal, header["request"], request)
+        for line in lines[1:]:
+            try:
+                i, entry = json.loads(line)
+            except (ValueError, TypeError):  # the last line of a run killed while writing it
+                continue
+            done[int(i)] = entry
+    return {i: e for i, e in done.items() if "file" not in e or (out / e["file"]).is_file()}
+
+
+def _slot_of(entry: dict[str, Any]) -> int:
+    """The slot number of an index entry that names its file (``motion_00042.h5`` -> 42)."""
+    return int(Path(entry["file"]).stem.split("_")[-1])
+
+
+def _check_same_request(path: Path, theirs: dict[str, Any], ours: dict[str, Any]) -> None:
+    differ = [k for k in ours if k in theirs and theirs[k] != ours[k]]
+    if differ:
+        said = ", ".join(f"{k} {theirs[k]!r} (now {ours[k]!r})" for k in differ)
+        raise ValueError(f"{path}: this folder holds sequences drawn with {said}; use another "
+                         "folder, or --no-resume to draw it anew")
+
+
 def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                             duration: float | None = None, fps: float = 30.0,
                             interaction: str | None = None, chair: str | None = None,
                             progress: bool = True, max_draws: int = 25,
-                            workers: int = 1) -> dict[str, Any]:
+                            workers: int = 1, resume: bool = True) -> dict[str, Any]:
     """``--motion-only``: ground-truth motions, no rendering. Returns the index it writes.
 
     Slot ``i`` draws from the ``i``-th stream spawned from ``seed``, so the files do not
     depend on ``workers``: with more than one, the slots run on a pool of that many spawned
     processes (one torch thread each), which on N cores is about N times as fast.
     A slot whose ``max_draws`` draws are all rejected is skipped and listed under ``"skipped"``
-    (sequence number and reason); bad arguments still raise ``ValueError``."""
+    (sequence number and reason); bad arguments still raise ``ValueError``.
+
+    Each finished slot is appended to ``index.partial.jsonl`` as it ends, so with ``resume`` a
+    run that was stopped goes on where it stopped (the slots already written or skipped are
+    kept), and a finished folder asked for more ``sequences`` draws only the new ones: slot
+    ``i``'s stream does not depend on ``sequences``, so the folder is the one a single run
+    writes. ``ValueError`` if the folder holds another request's sequences."""
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     _check_request(interaction, chair)  # once before any work, not once per slot
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    request = {"seed": seed, "fps": fps, "interaction": interaction, "chair": chair,
+               "duration": duration, "max_draws": max_draws}
+    done = {i: e for i, e in _done_slots(out, request).items() if i < sequences} \
+        if resume else {}
+    todo = [i for i in range(sequences) if i not in done]
     streams = np.random.SeedSequence(seed).spawn(sequences)
     args = (out, fps, interaction, chair, duration, max_draws)
     start = wallclock.perf_counter()
-    slots: list[tuple[int, dict[str, Any]]] = []
-    bar = tqdm(total=sequences, desc="sequences", disable=not progress)
-    if workers == 1 or sequences < 2:
-        for i in range(sequences):
-            slots.append(_motion_slot(i, streams[i], *args))
+    slots: list[tuple[int, dict[str, Any]]] = sorted(done.items())
+    journal = out / JOURNAL
+    with atomic_path(journal) as tmp:  # the slots kept, then one line per slot as it ends
+        tmp.write_text("".join(json.dumps(line) + "\n"
+                               for line in [{"request": request}, *map(list, slots)]))
+    bar = tqdm(total=sequences, initial=len(done), desc="sequences", disable=not progress)
+    with journal.open("a") as log:
+        def finish(slot: tuple[int, dict[str, Any]]) -> None:
+            slots.append(slot)
+            log.write(json.dumps(list(slot)) + "\n")
+            log.flush()
             bar.update()
-    else:
-        with spawn_pool(min(workers, sequences)) as pool:
-            # a failed slot or Ctrl-C cancels the slots not yet started
-            for fut in finished(pool.submit(_motion_slot, i, streams[i], *args)
-                                for i in range(sequences)):
-                slots.append(fut.result())
-                bar.update()
+
+        if workers == 1 or len(todo) < 2:
+            for i in todo:
+                finish(_motion_slot(i, streams[i], *args))
+        else:
+            with spawn_pool(min(workers, len(todo))) as pool:
+                # a failed slot or Ctrl-C cancels the slots not yet started
+                for fut in finished(pool.submit(_motion_slot, i, streams[i], *args)
+                                    for i in todo):
+                    finish(fut.result())
     bar.close()
     slots.sort(key=lambda s: s[0])
     index = [s for _, s in slots if "file" in s]
     skipped = [s for _, s in slots if "file" not in s]
-    summary = {"couch_version": __version__, "seed": seed, "fps": fps, "sequences": index,
-               "skipped": skipped, "frames": sum(s["frames"] for s in index),
+    summary = {"couch_version": __version__, "seed": seed, "fps": fps, "request": request,
+               "sequences": index, "skipped": skipped,
+               "frames": sum(s["frames"] for s in index), "resumed": len(done),
                "seconds": round(wallclock.perf_counter() - start, 2)}
     with atomic_path(out / "index.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    journal.unlink()
     return summary
 
 
@@ -363,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1, metavar="N",
                     help="with --motion-only: draw the sequences on N processes (one per "
                          "core; the files are the same for any N)")
+    ap.add_argument("--no-resume", dest="resume", action="store_false",
+                    help="with --motion-only: draw every sequence anew (by default a folder "
+                         "an earlier run of the same request began goes on where it stopped)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
@@ -370,9 +455,11 @@ def main(argv: list[str] | None = None) -> int:
             summary = simulate_motion_dataset(
                 args.out_dir, args.sequences, args.seed, None if args.duration == d.duration
                 else args.duration, fps=args.fps, interaction=args.interaction,
-                chair=args.chair, progress=not args.quiet, workers=args.workers)
+                chair=args.chair, progress=not args.quiet, workers=args.workers,
+                resume=args.resume)
+            kept = f" ({summary['resumed']} slots kept from before)" if summary["resumed"] else ""
             print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
-                  f"to {args.out_dir} in {summary['seconds']} s")
+                  f"to {args.out_dir} in {summary['seconds']} s{kept}")
             for s in summary["skipped"]:
                 print(f"skipped sequence {s['sequence']}: {s['reason']}", file=sys.stderr)
             return 0
