@@ -3,7 +3,8 @@
 Workers are *spawned*, not forked: torch's and open3d's thread pools do not survive a fork. Each
 worker sets the thread count of torch, open3d (TBB), OpenCV and numpy's BLAS once (one thread by
 default, so that N workers on N cores do not fight over them) and may import modules as it
-starts (``preload``: a worker's first import of torch and open3d takes seconds).
+starts (``preload``: a worker's first import of torch and open3d takes seconds); a worker ends
+itself within a second of the process that made the pool being killed.
 :func:`finished` walks the futures as they complete and cancels those not yet started when the
 caller stops early (a failed task or Ctrl-C), so an error does not wait for the rest of the
 queue. :func:`pool_map` is the stages' way to run independent tasks on a pool if they are given
@@ -14,6 +15,9 @@ from __future__ import annotations
 
 import importlib
 import multiprocessing
+import os
+import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
@@ -27,7 +31,21 @@ Pool = Executor | None
 after another in this process."""
 
 
-def _set_threads(threads: int | None, preload: tuple[str, ...] = ()) -> None:
+def _exit_with(parent: int, poll_s: float = 1.0) -> None:
+    """In a worker: end the process once ``parent`` is gone. A pool's workers wait on a queue
+    whose write end they hold themselves, so when the process that made the pool is killed
+    (SIGTERM, SIGKILL, a job scheduler's limit) nothing tells them: they would draw the tasks
+    already queued and then wait for ever, holding their memory."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(1)
+
+
+def _set_threads(threads: int | None, preload: tuple[str, ...] = (),
+                 parent: int | None = None) -> None:
+    if parent is not None:
+        threading.Thread(target=_exit_with, args=(parent,), daemon=True,
+                         name="couch-pool-parent-watch").start()
     if threads is not None:
         import cv2
         import open3d
@@ -54,7 +72,7 @@ def spawn_pool(workers: int, *, threads: int | None = 1, preload: Sequence[str] 
     pool = ProcessPoolExecutor(max_workers=workers,
                                mp_context=multiprocessing.get_context("spawn"),
                                initializer=_set_threads,
-                               initargs=(threads, tuple(preload)))
+                               initargs=(threads, tuple(preload), os.getpid()))
     if start:
         for _ in range(workers):  # a spawned pool starts a process per task it is given
             pool.submit(int)

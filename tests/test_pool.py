@@ -4,6 +4,10 @@ queue."""
 from __future__ import annotations
 
 import math
+import os
+import signal
+import subprocess
+import sys
 import textwrap
 import time
 
@@ -70,3 +74,41 @@ def test_preloaded_workers_have_the_modules_when_started():
     with spawn_pool(1, preload=("xml.dom.minidom",), start=True) as pool:
         assert pool.submit(eval, loaded.format("xml.dom.minidom")).result()
         assert not pool.submit(eval, loaded.format("xml.sax")).result()
+
+
+def _gone(pid: int) -> bool:
+    """True once ``pid`` has exited (a zombie nobody reaps counts: it has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_end_when_the_process_that_made_the_pool_is_killed(tmp_path):
+    # Killed without a chance to clean up (SIGKILL; a scheduler's SIGTERM is the same to the
+    # workers), the pool's owner leaves its worker in a 60 s task with more queued: the worker
+    # ends itself instead of running the queue and then waiting for ever.
+    script = textwrap.dedent("""
+        import os, signal, time
+        from couch.pool import spawn_pool
+        pool = spawn_pool(1, threads=None)
+        print(pool.submit(os.getpid).result(), flush=True)
+        for _ in range(3):
+            pool.submit(time.sleep, 60)
+        time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    # a file, not a pipe: the worker inherits it, and a pipe would stay open while it lives
+    with open(tmp_path / "out", "w") as out:
+        run = subprocess.run([sys.executable, "-c", script], stdout=out, stderr=out, timeout=60)
+    said = (tmp_path / "out").read_text()
+    assert run.returncode == -signal.SIGKILL, said
+    worker = int(said.split()[0])
+    deadline = time.monotonic() + 15
+    while not _gone(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if not _gone(worker):
+        os.kill(worker, signal.SIGKILL)  # not left behind by a failing run
+        pytest.fail(f"worker {worker} still running 15 s after its parent was killed")
