@@ -53,7 +53,6 @@ from typing import Any
 
 import h5py
 import numpy as np
-import torch
 import trimesh
 from tqdm import tqdm
 
@@ -76,7 +75,7 @@ from couch.augment.transfer import contact_parts, sitter_shift, transfer_contact
 from couch.body import CONTACT_NAMES, BodyModel
 from couch.fitting import BodyParams, cached_model, foot_points, foot_skate, pose_body
 from couch.geometry import apply_transform, invert_transform, make_transform
-from couch.pool import finished, spawn_pool
+from couch.pool import finished, limited_threads, spawn_pool
 from couch.schema import SCHEMA_VERSION, ProcessedSession, read_processed, write_session_group
 
 __all__ = [
@@ -527,14 +526,10 @@ def augment_dataset(processed: Sequence[str | os.PathLike], shapes_dir: str | os
                         kind="augmented", seed=seed, per_sequence=per_sequence,
                         scale_range=np.array([lo, hi]))
         if workers == 1:
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
+            with limited_threads(1):  # as a pool worker runs them: the same file for any N
                 for index, (i, k, shape, scale) in enumerate(tasks):
                     record(index, _task(sessions[i], shape, scale, (seed, i, k), *args), h5)
                     bar.update()
-            finally:
-                torch.set_num_threads(threads)
         else:
             with spawn_pool(workers) as pool:
                 futures: dict[Future[AugmentResult], int] = {

@@ -13,6 +13,7 @@ one (:data:`Pool`), in their own process if not, with the same results.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import multiprocessing
 import os
@@ -22,7 +23,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
 
-__all__ = ["Pool", "finished", "pool_map", "spawn_pool"]
+__all__ = ["Pool", "finished", "limited_threads", "pool_map", "spawn_pool"]
 
 T = TypeVar("T")
 
@@ -58,6 +59,31 @@ def _set_threads(threads: int | None, preload: tuple[str, ...] = (),
         threadpool_limits(threads)  # numpy's OpenBLAS: its threads start with a large product
     for name in preload:
         importlib.import_module(name)
+
+
+@contextlib.contextmanager
+def limited_threads(threads: int = 1) -> Iterator[None]:
+    """Run the body on ``threads`` threads of torch, open3d, OpenCV and numpy's BLAS, as a
+    :func:`spawn_pool` worker runs its tasks, and restore the counts after. What a task
+    computes can change in the last bits with the thread count (reductions split differently)
+    and a marginal decision with them, so a stage that runs its tasks here when it has no pool
+    gives the files its pool gives."""
+    import cv2
+    import open3d
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = (torch.get_num_threads(), open3d.utility.get_max_threads(), cv2.getNumThreads())
+    torch.set_num_threads(threads)
+    open3d.utility.set_max_threads(threads)
+    cv2.setNumThreads(threads)
+    try:
+        with threadpool_limits(threads):
+            yield
+    finally:
+        torch.set_num_threads(before[0])
+        open3d.utility.set_max_threads(before[1])
+        cv2.setNumThreads(before[2])
 
 
 def spawn_pool(workers: int, *, threads: int | None = 1, preload: Sequence[str] = (),

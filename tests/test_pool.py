@@ -14,7 +14,7 @@ import time
 import pytest
 import torch
 
-from couch.pool import finished, pool_map, spawn_pool
+from couch.pool import finished, limited_threads, pool_map, spawn_pool
 
 
 def _threads() -> tuple[int, int, int, list[int]]:
@@ -112,3 +112,11 @@ def test_workers_end_when_the_process_that_made_the_pool_is_killed(tmp_path):
     if not _gone(worker):
         os.kill(worker, signal.SIGKILL)  # not left behind by a failing run
         pytest.fail(f"worker {worker} still running 15 s after its parent was killed")
+
+
+def test_limited_threads_runs_here_as_a_worker_and_restores():
+    before = _threads()
+    with limited_threads(1):
+        torch_n, open3d_n, cv2_n, blas = _threads()
+        assert (torch_n, open3d_n, cv2_n) == (1, 1, 1) and set(blas) == {1}
+    assert _threads() == before

@@ -45,7 +45,7 @@ from couch.atomic import atomic_path
 from couch.body import BodyModel, load_body_model
 from couch.fitting import cached_model
 from couch.geometry import invert_transform, make_transform
-from couch.pool import finished, spawn_pool
+from couch.pool import finished, limited_threads, spawn_pool
 from couch.schema import write_processed
 from couch.tools.sim.chairs import KINDS, Chair, make_chair, random_chair_spec, save_mesh, scan_pose
 from couch.tools.sim.ik import yaw_matrix
@@ -260,7 +260,9 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
 
     Slot ``i`` draws from the ``i``-th stream spawned from ``seed``, so the files do not
     depend on ``workers``: with more than one, the slots run on a pool of that many spawned
-    processes (one torch thread each), which on N cores is about N times as fast.
+    processes (one torch thread each), which on N cores is about N times as fast; with one,
+    here on one thread of each library likewise (:func:`couch.pool.limited_threads`), since
+    the thread count can change a draw's last bits and with them a marginal decision.
     A slot whose ``max_draws`` draws are all rejected is skipped and listed under ``"skipped"``
     (sequence number and reason); bad arguments still raise ``ValueError``.
 
@@ -296,8 +298,9 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
             bar.update()
 
         if workers == 1 or len(todo) < 2:
-            for i in todo:
-                finish(_motion_slot(i, streams[i], *args))
+            with limited_threads(1):  # as a pool worker runs them: the same files for any N
+                for i in todo:
+                    finish(_motion_slot(i, streams[i], *args))
         else:
             with spawn_pool(min(workers, len(todo))) as pool:
                 # a failed slot or Ctrl-C cancels the slots not yet started
