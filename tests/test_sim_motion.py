@@ -12,6 +12,8 @@ proportions.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -254,6 +256,11 @@ def test_motion_only_dataset_resumes_where_it_stopped(tmp_path, monkeypatch):
     more = simulate_motion_dataset(tmp_path, 3, seed=5, duration=4.0, progress=False)
     assert drawn == [0, 1, 2] and more["resumed"] == 2
     assert more["sequences"][:2] == summary["sequences"]
+    # asked for fewer, the folder keeps what its index lists
+    fewer = simulate_motion_dataset(tmp_path, 2, seed=5, duration=4.0, progress=False)
+    assert drawn == [0, 1, 2] and fewer["removed"] == ["motion_00002.h5"]
+    assert sorted(f.name for f in tmp_path.glob("motion_*.h5")) == [
+        s["file"] for s in fewer["sequences"]]
     # another request in the same folder is refused, naming what differs
     with pytest.raises(ValueError, match=r"index\.json: .*seed 5 \(now 6\)"):
         simulate_motion_dataset(tmp_path, 3, seed=6, duration=4.0, progress=False)
@@ -264,7 +271,7 @@ def test_motion_only_dataset_resumes_where_it_stopped(tmp_path, monkeypatch):
         simulate_motion_dataset(tmp_path, 3, seed=5, duration=4.0, progress=False)
 
 
-def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path):
+def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path, capsys):
     # `couch-simulate --motion-only --fps 15` wrote 30 fps motions until session 42
     from couch.schema import read_processed
     from couch.tools.sim.session import main
@@ -274,6 +281,18 @@ def test_motion_only_command_keeps_the_frame_rate_asked(tmp_path):
     motion = read_processed(tmp_path / "motion_00000.h5")
     assert motion.fps == 15.0
     assert np.allclose(np.diff(motion.time), 1 / 15.0)
+    # the folder holds seed 7's draw: another seed is refused, naming it, unless --no-resume
+    again = [str(tmp_path), "--motion-only", "--fps", "15", "--duration", "4", "--seed", "8",
+             "--quiet"]
+    assert main(again) == 1
+    assert "seed 7 (now 8)" in capsys.readouterr().err
+    assert main([*again, "--no-resume"]) == 0
+    # seed 8's only slot finds no plausible draw at 4 s: seed 7's file goes, not left for
+    # training to pick up beside an index that does not list it
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert index["request"]["seed"] == 8 and index["removed"] == ["motion_00000.h5"]
+    assert [s["sequence"] for s in index["skipped"]] == [0]
+    assert not list(tmp_path.glob("motion_*.h5"))
 
 
 def test_motion_only_dataset_skips_an_implausible_slot(tmp_path):

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 import time as wallclock
 from pathlib import Path
@@ -270,7 +271,10 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     run that was stopped goes on where it stopped (the slots already written or skipped are
     kept), and a finished folder asked for more ``sequences`` draws only the new ones: slot
     ``i``'s stream does not depend on ``sequences``, so the folder is the one a single run
-    writes. ``ValueError`` if the folder holds another request's sequences."""
+    writes. ``ValueError`` if the folder holds another request's sequences. At the end the
+    folder holds the files its index lists: other ``motion_NNNNN.h5`` files (another request's,
+    drawn over with ``resume=False``, or slots past a smaller ``sequences``) are deleted and
+    named under ``"removed"``."""
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     _check_request(interaction, chair)  # once before any work, not once per slot
@@ -311,9 +315,17 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     slots.sort(key=lambda s: s[0])
     index = [s for _, s in slots if "file" in s]
     skipped = [s for _, s in slots if "file" not in s]
+    # The folder holds what its index lists: training reads every motion_*.h5 it finds, so a
+    # file of another request (--no-resume) or of a slot past a smaller --sequences would slip in.
+    listed = {s["file"] for s in index}
+    stale = [f for f in out.glob("motion_*.h5")
+             if re.fullmatch(r"motion_\d{5}\.h5", f.name) and f.name not in listed]
+    for f in stale:
+        f.unlink()
     summary = {"couch_version": __version__, "seed": seed, "fps": fps, "request": request,
                "sequences": index, "skipped": skipped,
                "frames": sum(s["frames"] for s in index), "resumed": len(done),
+               "removed": sorted(f.name for f in stale),
                "seconds": round(wallclock.perf_counter() - start, 2)}
     with atomic_path(out / "index.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
@@ -449,8 +461,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --motion-only: draw the sequences on N processes (one per "
                          "core; the files are the same for any N)")
     ap.add_argument("--no-resume", dest="resume", action="store_false",
-                    help="with --motion-only: draw every sequence anew (by default a folder "
-                         "an earlier run of the same request began goes on where it stopped)")
+                    help="with --motion-only: draw every sequence anew, deleting the folder's "
+                         "motion files this draw does not write (by default a folder an "
+                         "earlier run of the same request began goes on where it stopped)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
@@ -461,6 +474,9 @@ def main(argv: list[str] | None = None) -> int:
                 chair=args.chair, progress=not args.quiet, workers=args.workers,
                 resume=args.resume)
             kept = f" ({summary['resumed']} slots kept from before)" if summary["resumed"] else ""
+            if summary["removed"]:
+                kept += (f"; removed {len(summary['removed'])} motion files the index does not "
+                         "list")
             print(f"wrote {len(summary['sequences'])} sequences, {summary['frames']} frames, "
                   f"to {args.out_dir} in {summary['seconds']} s{kept}")
             for s in summary["skipped"]:
