@@ -256,11 +256,12 @@ def test_motion_only_dataset_resumes_where_it_stopped(tmp_path, monkeypatch):
     more = simulate_motion_dataset(tmp_path, 3, seed=5, duration=4.0, progress=False)
     assert drawn == [0, 1, 2] and more["resumed"] == 2
     assert more["sequences"][:2] == summary["sequences"]
-    # asked for fewer, the folder keeps what its index lists
+    # asked for fewer, the slot the index no longer lists goes; a file no index listed stays
+    (tmp_path / "motion_00099.h5").write_bytes(b"not ours")
     fewer = simulate_motion_dataset(tmp_path, 2, seed=5, duration=4.0, progress=False)
     assert drawn == [0, 1, 2] and fewer["removed"] == ["motion_00002.h5"]
     assert sorted(f.name for f in tmp_path.glob("motion_*.h5")) == [
-        s["file"] for s in fewer["sequences"]]
+        *(s["file"] for s in fewer["sequences"]), "motion_00099.h5"]
     # another request in the same folder is refused, naming what differs
     with pytest.raises(ValueError, match=r"index\.json: .*seed 5 \(now 6\)"):
         simulate_motion_dataset(tmp_path, 3, seed=6, duration=4.0, progress=False)

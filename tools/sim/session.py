@@ -239,6 +239,26 @@ def _done_slots(out: Path, request: dict[str, Any]) -> dict[int, dict[str, Any]]
     return {i: e for i, e in done.items() if "file" not in e or (out / e["file"]).is_file()}
 
 
+def _listed_files(out: Path) -> set[str]:
+    """The motion files ``out``'s index and journal name, whatever request drew them (read
+    leniently: this only decides which files a new draw replaces)."""
+    names: list[Any] = []
+    try:
+        names += [e.get("file") for e in json.loads((out / "index.json").read_text())
+                  ["sequences"]]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass
+    try:
+        for line in (out / JOURNAL).read_text().splitlines()[1:]:
+            try:
+                names.append(json.loads(line)[1].get("file"))
+            except (ValueError, TypeError, IndexError, KeyError, AttributeError):
+                continue
+    except OSError:
+        pass
+    return {n for n in names if isinstance(n, str) and re.fullmatch(r"motion_\d{5}\.h5", n)}
+
+
 def _slot_of(entry: dict[str, Any]) -> int:
     """The slot number of an index entry that names its file (``motion_00042.h5`` -> 42)."""
     return int(Path(entry["file"]).stem.split("_")[-1])
@@ -271,10 +291,10 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     run that was stopped goes on where it stopped (the slots already written or skipped are
     kept), and a finished folder asked for more ``sequences`` draws only the new ones: slot
     ``i``'s stream does not depend on ``sequences``, so the folder is the one a single run
-    writes. ``ValueError`` if the folder holds another request's sequences. At the end the
-    folder holds the files its index lists: other ``motion_NNNNN.h5`` files (another request's,
-    drawn over with ``resume=False``, or slots past a smaller ``sequences``) are deleted and
-    named under ``"removed"``."""
+    writes. ``ValueError`` if the folder holds another request's sequences. Files the
+    folder's last index listed and the new one does not (another request's, drawn over with
+    ``resume=False``; slots past a smaller ``sequences``) are deleted and named under
+    ``"removed"``; files no index listed are left alone."""
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     _check_request(interaction, chair)  # once before any work, not once per slot
@@ -284,6 +304,7 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
                "duration": duration, "max_draws": max_draws}
     done = {i: e for i, e in _done_slots(out, request).items() if i < sequences} \
         if resume else {}
+    previous = _listed_files(out)
     todo = [i for i in range(sequences) if i not in done]
     streams = np.random.SeedSequence(seed).spawn(sequences)
     args = (out, fps, interaction, chair, duration, max_draws)
@@ -315,11 +336,10 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
     slots.sort(key=lambda s: s[0])
     index = [s for _, s in slots if "file" in s]
     skipped = [s for _, s in slots if "file" not in s]
-    # The folder holds what its index lists: training reads every motion_*.h5 it finds, so a
-    # file of another request (--no-resume) or of a slot past a smaller --sequences would slip in.
+    # Training reads every motion_*.h5 it finds, so a file the last index listed and this one
+    # does not (another request's, with --no-resume; a slot past a smaller --sequences) goes.
     listed = {s["file"] for s in index}
-    stale = [f for f in out.glob("motion_*.h5")
-             if re.fullmatch(r"motion_\d{5}\.h5", f.name) and f.name not in listed]
+    stale = [out / f for f in sorted(previous - listed) if (out / f).is_file()]
     for f in stale:
         f.unlink()
     summary = {"couch_version": __version__, "seed": seed, "fps": fps, "request": request,
@@ -461,9 +481,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --motion-only: draw the sequences on N processes (one per "
                          "core; the files are the same for any N)")
     ap.add_argument("--no-resume", dest="resume", action="store_false",
-                    help="with --motion-only: draw every sequence anew, deleting the folder's "
-                         "motion files this draw does not write (by default a folder an "
-                         "earlier run of the same request began goes on where it stopped)")
+                    help="with --motion-only: draw every sequence anew, deleting the motion "
+                         "files the folder's index listed that this draw does not write (by "
+                         "default a folder an earlier run of the same request began goes on "
+                         "where it stopped)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
