@@ -115,8 +115,12 @@ def test_workers_end_when_the_process_that_made_the_pool_is_killed(tmp_path):
 
 
 def test_limited_threads_runs_here_as_a_worker_and_restores():
-    before = _threads()
-    with limited_threads(1):
-        torch_n, open3d_n, cv2_n, blas = _threads()
-        assert (torch_n, open3d_n, cv2_n) == (1, 1, 1) and set(blas) == {1}
-    assert _threads() == before
+    outside = _threads()
+    with limited_threads(2):  # counts to come back to, whatever pytest's worker runs on
+        two = _threads()
+        assert two[:3] == (2, 2, 2)
+        with limited_threads(1):
+            torch_n, open3d_n, cv2_n, blas = _threads()
+            assert (torch_n, open3d_n, cv2_n) == (1, 1, 1) and set(blas) == {1}
+        assert _threads() == two
+    assert _threads() == outside
