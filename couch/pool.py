@@ -42,20 +42,30 @@ def _exit_with(parent: int, poll_s: float = 1.0) -> None:
     os._exit(1)
 
 
+def _set_library_threads(threads: int | tuple[int, int, int]) -> tuple[int, int, int]:
+    """Set torch's, open3d's and OpenCV's thread counts (one for all, or one each in that
+    order); returns the counts they had."""
+    import cv2
+    import open3d
+    import torch
+
+    torch_n, open3d_n, cv2_n = (threads,) * 3 if isinstance(threads, int) else threads
+    before = (torch.get_num_threads(), open3d.utility.get_max_threads(), cv2.getNumThreads())
+    torch.set_num_threads(torch_n)
+    open3d.utility.set_max_threads(open3d_n)  # its TBB pool (OMP_NUM_THREADS is not read)
+    cv2.setNumThreads(cv2_n)
+    return before
+
+
 def _set_threads(threads: int | None, preload: tuple[str, ...] = (),
                  parent: int | None = None) -> None:
     if parent is not None:
         threading.Thread(target=_exit_with, args=(parent,), daemon=True,
                          name="couch-pool-parent-watch").start()
     if threads is not None:
-        import cv2
-        import open3d
-        import torch
         from threadpoolctl import threadpool_limits
 
-        torch.set_num_threads(threads)
-        open3d.utility.set_max_threads(threads)  # its TBB pool (OMP_NUM_THREADS is not read)
-        cv2.setNumThreads(threads)
+        _set_library_threads(threads)
         threadpool_limits(threads)  # numpy's OpenBLAS: its threads start with a large product
     for name in preload:
         importlib.import_module(name)
@@ -68,22 +78,14 @@ def limited_threads(threads: int = 1) -> Iterator[None]:
     computes can change in the last bits with the thread count (reductions split differently)
     and a marginal decision with them, so a stage that runs its tasks here when it has no pool
     gives the files its pool gives."""
-    import cv2
-    import open3d
-    import torch
     from threadpoolctl import threadpool_limits
 
-    before = (torch.get_num_threads(), open3d.utility.get_max_threads(), cv2.getNumThreads())
-    torch.set_num_threads(threads)
-    open3d.utility.set_max_threads(threads)
-    cv2.setNumThreads(threads)
+    before = _set_library_threads(threads)
     try:
         with threadpool_limits(threads):
             yield
     finally:
-        torch.set_num_threads(before[0])
-        open3d.utility.set_max_threads(before[1])
-        cv2.setNumThreads(before[2])
+        _set_library_threads(before)
 
 
 def spawn_pool(workers: int, *, threads: int | None = 1, preload: Sequence[str] = (),

@@ -222,21 +222,32 @@ def _done_slots(out: Path, request: dict[str, Any]) -> dict[int, dict[str, Any]]
             raise ValueError(f"{index}: not an index couch-simulate wrote ({e!r}); "
                              "use --no-resume") from e
     if journal.is_file():
-        lines = journal.read_text().splitlines()
-        try:
-            header = json.loads(lines[0]) if lines else None
-        except ValueError:
-            header = None
+        header, entries = _read_journal(journal)
         if not isinstance(header, dict) or "request" not in header:
             raise ValueError(f"{journal}: no request header on its first line; use --no-resume")
         _check_same_request(journal, header["request"], request)
-        for line in lines[1:]:
-            try:
-                i, entry = json.loads(line)
-            except (ValueError, TypeError):  # the last line of a run killed while writing it
-                continue
-            done[int(i)] = entry
+        done.update(entries)
     return {i: e for i, e in done.items() if "file" not in e or (out / e["file"]).is_file()}
+
+
+def _read_journal(journal: Path) -> tuple[Any, dict[int, dict[str, Any]]]:
+    """A :data:`JOURNAL`'s first line (parsed; None if it is not JSON) and its slots' entries,
+    a line that is not ``[slot, {...}]`` skipped (the last line of a run killed while writing
+    it)."""
+    lines = journal.read_text().splitlines()
+    try:
+        header = json.loads(lines[0]) if lines else None
+    except ValueError:
+        header = None
+    entries: dict[int, dict[str, Any]] = {}
+    for line in lines[1:]:
+        try:
+            i, entry = json.loads(line)
+            if isinstance(entry, dict):
+                entries[int(i)] = entry
+        except (ValueError, TypeError):
+            continue
+    return header, entries
 
 
 def _listed_files(out: Path) -> set[str]:
@@ -248,14 +259,8 @@ def _listed_files(out: Path) -> set[str]:
                   ["sequences"]]
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         pass
-    try:
-        for line in (out / JOURNAL).read_text().splitlines()[1:]:
-            try:
-                names.append(json.loads(line)[1].get("file"))
-            except (ValueError, TypeError, IndexError, KeyError, AttributeError):
-                continue
-    except OSError:
-        pass
+    if (out / JOURNAL).is_file():
+        names += [e.get("file") for e in _read_journal(out / JOURNAL)[1].values()]
     return {n for n in names if isinstance(n, str) and re.fullmatch(r"motion_\d{5}\.h5", n)}
 
 
