@@ -286,6 +286,75 @@ def test_render_is_deterministic_given_rng(calib: KinectCalibration) -> None:
     assert (a.depth_mm != c.depth_mm).mean() > 0.3
 
 
+# ------------------------------------------------------------------------------ IR
+
+def test_ir_falls_with_range_squared_incidence_and_albedo(calib: KinectCalibration) -> None:
+    """The active IR image: the camera's own illuminator, so a surface's counts scale with its
+    albedo and cos(incidence) and fall with the square of its range; and rendering it leaves
+    the depth image and the generator's later draws as they are without it."""
+    def centre_ir(scene: kinect.SimScene) -> float:
+        f = kinect.render_depth(scene, calib, POSE, DepthNoise.none(), ir=True)
+        u, v = round(calib.depth.cx), round(calib.depth.cy)  # the optical axis
+        return float(np.median(f.ir[v - 3:v + 4, u - 3:u + 4]))
+
+    grey = (0.5, 0.5, 0.5)
+    near = centre_ir(kinect.build_scene([plane([0, 0, 1.0], [0, 0, -1], color=grey)]))
+    far = centre_ir(kinect.build_scene([plane([0, 0, 2.0], [0, 0, -1], color=grey)]))
+    dark = centre_ir(kinect.build_scene([plane([0, 0, 1.0], [0, 0, -1],
+                                               color=(0.1, 0.1, 0.1))]))
+    tilted = centre_ir(kinect.build_scene([plane([0, 0, 1.0], [np.sin(1.0), 0, -np.cos(1.0)],
+                                                 color=grey)]))
+    assert near == pytest.approx(kinect.IR_GAIN * 0.5, rel=0.01)
+    assert near / far == pytest.approx(4.0, rel=0.02)
+    assert dark / near == pytest.approx(0.2, rel=0.02)
+    assert tilted / near == pytest.approx(np.cos(1.0), rel=0.03)
+
+    scene = kinect.build_scene([sphere(np.array([0, 0, 2.0]), 0.5, label=1),
+                                plane([0, 0, 3.0], [0, 0, -1])])
+    rng_a, rng_b = np.random.default_rng(4), np.random.default_rng(4)
+    a = kinect.render_depth(scene, calib, POSE, DepthNoise(), rng_a, ir=True)
+    b = kinect.render_depth(scene, calib, POSE, DepthNoise(), rng_b)
+    np.testing.assert_array_equal(a.depth_mm, b.depth_mm)
+    assert b.ir is None and rng_a.random() == rng_b.random()
+    again = kinect.render_depth(scene, calib, POSE, DepthNoise(), np.random.default_rng(4),
+                                ir=True)
+    np.testing.assert_array_equal(a.ir, again.ir)  # its shot noise is seeded too
+    # shot noise: sqrt(counts) on the sphere's flat-lit middle
+    clean = kinect.render_depth(scene, calib, POSE, DepthNoise.none(), ir=True).ir
+    sel = (a.depth_mm > 0) & (clean > 400)
+    rel = (a.ir[sel].astype(float) - clean[sel]) / np.sqrt(clean[sel])
+    assert 0.7 < rel.std() < 1.4
+
+
+def test_charuco_board_is_found_in_the_ir_image_where_the_depth_camera_sees_it(
+        calib: KinectCalibration) -> None:
+    """A ChArUco board in front of the depth camera: OpenCV finds its corners in the IR image
+    (what calibrating a depth camera with IR images relies on), within half a pixel of the
+    board's corners projected through the depth intrinsics."""
+    from couch.capture.charuco import BoardSpec, board_corners_3d, detect_board
+
+    spec = BoardSpec()
+    w, h = spec.size
+    board_from_centre = make_transform(np.eye(3), [w / 2 - spec.margin, h / 2 - spec.margin, 0])
+    depth_from_board = (make_transform(Rotation.from_euler("xy", [10, -15], degrees=True)
+                                       .as_matrix(), [0.0, 0.0, 1.1])
+                        @ invert_transform(board_from_centre))
+    scene = kinect.build_scene([kinect.board_mesh(spec, POSE @ depth_from_board),
+                                plane([0, 0, 3.0], [0, 0, -1])])
+    f = kinect.render_depth(scene, calib, POSE, DepthNoise(), np.random.default_rng(0), ir=True)
+    ir8 = np.clip(f.ir.astype(np.float32) * (255.0 / np.percentile(f.ir, 99.5)), 0, 255)
+    found = detect_board(ir8.astype(np.uint8), spec)
+    corners = board_corners_3d(spec)
+    assert len(found.ids) >= 0.8 * len(corners)
+    proj, _ = cv2.projectPoints(corners[found.ids], *(cv2.Rodrigues(depth_from_board[:3, :3])[0],
+                                                       depth_from_board[:3, 3]),
+                                calib.depth.K(), calib.depth.dist)
+    err = np.linalg.norm(proj.reshape(-1, 2) - found.corners, axis=1)
+    print(f"{len(found.ids)} of {len(corners)} corners, {np.median(err):.3f} px median, "
+          f"{err.max():.3f} px largest")
+    assert np.median(err) < 0.25 and err.max() < 0.5
+
+
 # ------------------------------------------------------------------------------ colour
 
 def test_colour_view_of_box_matches_project_points(calib: KinectCalibration) -> None:

@@ -90,13 +90,21 @@ def test_pyav_decodes_the_recordings_and_frames_drop_as_asked(session):
             frames = [f.to_ndarray() for f in container.decode(depth_stream)]
             attachments = [a for a in container.streams.attachments]
             assert attachments and json.loads(bytes(attachments[0].data))
-        assert len(frames) == n - len(cam["dropped_frames"])
-        assert frames[0].shape == (288, 320) and frames[0].dtype == np.uint16
-        # our reader returns the very same depth PyAV decodes
-        ours = [c.depth_mm for c in open_azure_mkv(path) if c.depth_mm is not None]
-        assert all(np.array_equal(a, b) for a, b in zip(frames, ours, strict=True))
+            ir_stream = next(s for s in container.streams.video
+                             if s.metadata.get("title") == "IR")
+            container.seek(0)
+            irs = [f.to_ndarray() for f in container.decode(ir_stream)]
+        assert len(frames) == len(irs) == n - len(cam["dropped_frames"])
+        assert frames[0].shape == irs[0].shape == (288, 320)
+        assert frames[0].dtype == irs[0].dtype == np.uint16
+        # our reader returns the very same depth and IR PyAV decodes
+        caps = [c for c in open_azure_mkv(path) if c.depth_mm is not None]
+        assert all(np.array_equal(a, c.depth_mm) and np.array_equal(b, c.ir)
+                   for a, b, c in zip(frames, irs, caps, strict=True))
         valid = frames[0] > 0
         assert 0.2 < valid.mean() and 300 < np.median(frames[0][valid]) < 6000
+        # the IR image lights what the depth measures (a room 1-6 m from the camera)
+        assert (irs[0][valid] > 0).mean() > 0.95 and 5 < np.median(irs[0][valid]) < 3000
         total_dropped += len(cam["dropped_frames"])
     # 40 camera-frames at p = 0.2: 8 expected, binomial sd 2.5
     assert 1 <= total_dropped <= 16
@@ -230,8 +238,8 @@ def test_contact_sheet_tool(session, tmp_path):
 
 @pytest.fixture(scope="module")
 def depth_only(session, tmp_path_factory) -> tuple[Path, dict, int]:
-    """The same session (same seed) with ``color=False``, and how many colour images the
-    simulator rendered for it (a spy on ``render_color``)."""
+    """The same session (same seed) with ``color=False`` and ``ir=False``, and how many colour
+    images the simulator rendered for it (a spy on ``render_color``)."""
     out = tmp_path_factory.mktemp("depth_only")
     rendered = 0
     real = recording.render_color
@@ -243,21 +251,25 @@ def depth_only(session, tmp_path_factory) -> tuple[Path, dict, int]:
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(recording, "render_color", spy)
-        info = simulate_session(out, dataclasses.replace(CFG, color=False), progress=False)
+        info = simulate_session(out, dataclasses.replace(CFG, color=False, ir=False),
+                                progress=False)
     return out, info, rendered
 
 
-def test_depth_only_session_is_the_colour_session_without_colour(session, depth_only):
+def test_depth_only_session_is_the_colour_session_without_colour_or_ir(session, depth_only):
     """``color=False`` (--no-color): kinect/ and background/ have no COLOR track (as
     ``k4arecorder --color-mode OFF`` writes), their depth and timestamps are exactly the colour
     session's, colour is rendered only for the ChArUco captures, and everything else (the
-    captures, IMU, truth) is byte for byte the same."""
+    IMU, truth) is byte for byte the same; ``ir=False`` (--no-ir) leaves every IR track
+    declared and empty, and changes nothing else (the ChArUco captures are the colour
+    session's but for their IR)."""
     out, info = session
     out_d, info_d, rendered = depth_only
     assert rendered == CFG.charuco_poses * CFG.cameras  # the calibration captures only
     assert info_d["cameras"] == info["cameras"] and info_d["imu"] == info["imu"]
-    assert info_d["config"] == {**info["config"], "color": False}
-    assert "color" not in info["config"]  # colour sessions keep their truth.json bytes
+    assert info_d["config"] == {**info["config"], "color": False, "ir": False}
+    # sessions at the defaults keep their truth.json bytes
+    assert "color" not in info["config"] and "ir" not in info["config"]
     manifest = json.loads((out / "session.json").read_text())
     for dev in manifest["kinect"]:
         for key in ("file", "background"):
@@ -270,10 +282,16 @@ def test_depth_only_session_is_the_colour_session_without_colour(session, depth_
             assert len(a) == len(b) > 0
             for x, y in zip(a, b, strict=True):
                 assert x.color_jpeg is None and x.timestamp_us == y.timestamp_us
+                assert x.ir is None and y.ir is not None
                 np.testing.assert_array_equal(x.depth_mm, y.depth_mm)
-        # the ChArUco captures keep colour: identical files
+        # the ChArUco captures keep colour: the same images, IR apart
         cal = dev["calibration_capture"]
-        assert (out_d / cal).read_bytes() == (out / cal).read_bytes()
+        a, b = list(open_azure_mkv(out_d / cal)), list(open_azure_mkv(out / cal))
+        assert len(a) == len(b) == CFG.charuco_poses
+        for x, y in zip(a, b, strict=True):
+            assert x.color_jpeg == y.color_jpeg and x.timestamp_us == y.timestamp_us
+            np.testing.assert_array_equal(x.depth_mm, y.depth_mm)
+            assert x.ir is None and y.ir is not None
     for name in ("session.json", "imu/recording.mvnx", "imu/xbus.bin", CLOTHING_FILE):
         assert (out_d / name).read_bytes() == (out / name).read_bytes(), name
     truth, truth_d = read_processed(out / "ground_truth.h5"), read_processed(
@@ -299,7 +317,8 @@ def test_oracle_session_is_the_same_session_without_clothes_or_suit_calibration_
     the background), the cameras shown the bare body and the suit without its per-segment
     calibration error; truth.json records both, the defaults' records stay as they were."""
     out_d, info_d, _ = depth_only
-    cfg = dataclasses.replace(CFG, color=False, clothing=False, imu_misalignment=0.0)
+    cfg = dataclasses.replace(CFG, color=False, ir=False, clothing=False,
+                              imu_misalignment=0.0)
     info = simulate_session(tmp_path, cfg, progress=False)
     assert info["config"] == {**info_d["config"], "clothing": False, "imu_misalignment": 0.0}
     assert "clothing" not in info_d["config"] and "imu_misalignment" not in info_d["config"]

@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import functools
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -553,17 +555,48 @@ class DepthFrame:
             ray hits (NaN: no surface), before any noise or invalidation.
         label: (H, W) int8 ``label`` of the mesh hit by the exact ray (-1: none).
         flying: (H, W) bool, pixels replaced by flying (mixed) depths.
+        ir: (H, W) uint16 active-IR intensity in the same pixels (:func:`render_depth` with
+            ``ir``), None without.
     """
 
     depth_mm: np.ndarray
     depth_true: np.ndarray
     label: np.ndarray
     flying: np.ndarray
+    ir: np.ndarray | None = None
+
+
+#: IR counts of a white surface (albedo 1) facing the camera 1 m away. A real NFOV IR image
+#: reads a few hundred counts on a person 2-3 m away; the simulator's albedos are its colour
+#: albedos (their RGB mean), a stand-in for the surfaces' 850 nm reflectance.
+IR_GAIN = 3000.0
+
+
+def _active_ir(scene: SimScene, hit: dict[str, np.ndarray], origin: np.ndarray,
+               dirs: np.ndarray, intr: CameraIntrinsics, rot: np.ndarray, cos: np.ndarray,
+               fov_cut: float) -> np.ndarray:
+    """(H, W) float32 noise-free active-IR intensity: the camera's own illuminator, so
+    ``IR_GAIN · albedo · cos(incidence) / range²`` (range along the ray, metres), dark outside
+    the NFOV illuminator's octagon (``fov_cut``, see :class:`DepthNoise`) and where nothing was
+    hit. ``cos`` (H, W) |cos| of the incidence angle."""
+    h, w = dirs.shape[:2]
+    surf = _surface(scene, hit, origin, dirs, _grid(intr)[0], rot)
+    inv_len = _grid(intr)[2].reshape(-1)[surf.idx]  # 1/|ray| of a ray whose camera z is 1
+    rng_m = hit["t"].reshape(-1)[surf.idx] / inv_len
+    out = np.zeros(h * w, np.float32)
+    out[surf.idx] = (np.float32(IR_GAIN) * surf.albedo.mean(axis=1) * cos.reshape(-1)[surf.idx]
+                     / np.square(rng_m))
+    out = out.reshape(h, w)
+    if fov_cut > 0:
+        u = np.abs(np.arange(w) - (w - 1) / 2) / (w / 2)
+        v = np.abs(np.arange(h) - (h - 1) / 2) / (h / 2)
+        out[(u[None] + v[:, None]) > fov_cut] = 0.0
+    return out
 
 
 def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np.ndarray,
                  noise: DepthNoise | None = None, rng: np.random.Generator | None = None,
-                 ) -> DepthFrame:
+                 *, ir: bool = False) -> DepthFrame:
     """Render one device's depth image (see :class:`DepthNoise` for the artefacts).
 
     Args:
@@ -572,6 +605,10 @@ def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np
         world_from_depth: (4, 4) pose of the depth camera, metres.
         noise: artefacts; None = ``DepthNoise()`` defaults.
         rng: randomness for this frame (noise, jitter, dropout, flying pixels).
+        ir: also render the active-IR image (:attr:`DepthFrame.ir`, see :func:`_active_ir`),
+            with shot noise (std = √counts) unless ``noise`` has no axial noise. Its noise comes
+            from its own generator, seeded by the depth image's bytes, so that ``rng`` draws
+            what it draws without IR and every other image of a session stays as it was.
     """
     noise = DepthNoise() if noise is None else noise
     rng = np.random.default_rng() if rng is None else rng
@@ -588,6 +625,9 @@ def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np
     z_true = np.where(found, t, np.float32(np.nan))
     z = np.where(found, t, np.float32(0.0))
     cos_m[~found] = 0.0
+    ir_clean = (_active_ir(scene, hit, origin, dirs, intr,
+                           np.asarray(world_from_depth, np.float64)[:3, :3], cos_m,
+                           noise.fov_cut) if ir else None)
 
     if noise.lateral_px > 0:
         mu = np.arange(w, dtype=np.float32)[None] + np.float32(noise.lateral_px) * (
@@ -642,8 +682,15 @@ def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np
         v = np.abs(np.arange(h) - (h - 1) / 2) / (h / 2)
         valid &= (u[None] + v[:, None]) <= noise.fov_cut
     depth_mm = np.where(valid, np.clip(np.rint(z_meas * 1000.0), 0, 65535), 0).astype(np.uint16)
+    ir_counts = None
+    if ir_clean is not None:
+        if noise.sigma_a > 0 or noise.sigma_b > 0:
+            shot = np.random.default_rng(zlib.crc32(depth_mm)).standard_normal(
+                (h, w), dtype=np.float32)
+            ir_clean += np.sqrt(ir_clean) * shot
+        ir_counts = np.clip(np.rint(ir_clean), 0, 65535).astype(np.uint16)
     return DepthFrame(depth_mm=depth_mm, depth_true=z_true, label=label,
-                      flying=flying & valid)
+                      flying=flying & valid, ir=ir_counts)
 
 
 # --------------------------------------------------------------------------------------------
@@ -898,34 +945,28 @@ def skip_color(calib: KinectCalibration, rng: np.random.Generator,
     _color_draws(calib.color, ColorNoise() if noise is None else noise, rng)
 
 
-def render_color(scene: SimScene, calib: KinectCalibration, world_from_depth: np.ndarray,
-                 light: Light | None = None, rng: np.random.Generator | None = None,
-                 jpeg_quality: int = 90, *, noise: ColorNoise | None = None) -> ColorFrame:
-    """Render one device's colour image (720P: 1280x720) and its ground-truth masks.
+class _Surface(NamedTuple):
+    """What the hit pixels of one image see: flat indices ``idx`` (N,) of the pixels whose ray
+    hit a mesh, their scene geometry ids ``gid`` and scene face indices ``face`` (N,),
+    barycentric coordinates ``bary`` (N, 3), ray directions ``dirs`` (N, 3) and albedo (N, 3)
+    float32 RGB in [0, 1]; ``of`` gathers the hit pixels' values from an (H, W, ...) array."""
 
-    The colour camera sits at ``world_from_depth @ inv(calib.color_from_depth)`` and sees through
-    ``calib.color``'s distortion. Albedo comes from each mesh's colours times its procedural
-    texture, or its planar image texture (area-sampled); shading is ambient + Lambertian key light
-    with optional cast shadows; then blur, vignetting, per-device white balance, per-frame
-    exposure, sensor noise (:class:`ColorNoise`) and JPEG at ``jpeg_quality``.
+    idx: np.ndarray
+    gid: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    dirs: np.ndarray
+    albedo: np.ndarray
+    of: Callable[[np.ndarray], np.ndarray]
 
-    Args:
-        scene: the frame's :func:`build_scene`.
-        calib: the device (``calib.color`` intrinsics, ``calib.color_from_depth``).
-        world_from_depth: (4, 4) pose of the device's depth camera, metres.
-        light: lighting; None = ``Light()``.
-        rng: randomness for this frame (exposure, sensor noise).
-        jpeg_quality: 0-100 for :attr:`ColorFrame.jpeg`.
-        noise: sensor imperfections; None = ``ColorNoise()`` defaults.
-    """
-    light = Light() if light is None else light
-    noise = ColorNoise() if noise is None else noise
-    rng = np.random.default_rng() if rng is None else rng
-    intr = calib.color
-    h, w = intr.height, intr.width
-    pose = world_from_color(calib, world_from_depth)
-    origin, dirs, xy = _camera_rays(intr, pose)
-    hit = _cast(scene, origin, dirs)
+
+def _surface(scene: SimScene, hit: dict[str, np.ndarray], origin: np.ndarray,
+             dirs: np.ndarray, xy: np.ndarray, rot: np.ndarray) -> _Surface:
+    """The albedo under each pixel of a ray cast (:func:`_cast` of ``dirs`` (H, W, 3) from
+    ``origin``; ``xy`` (H, W, 2) the normalised grid, ``rot`` (3, 3) world_from_camera's
+    rotation): each mesh's colours times its procedural texture, or its planar image texture
+    (area-sampled). The colour and the IR renders share it."""
+    h, w = dirs.shape[:2]
     t = hit["t"].reshape(-1)
     idx = np.flatnonzero(np.isfinite(t))
     everything = len(idx) == h * w   # a closed room: skip the gathers
@@ -976,9 +1017,45 @@ def render_color(scene: SimScene, calib: KinectCalibration, world_from_depth: np
         v0, v1 = np.maximum(pv - 1, 0), np.minimum(pv + 1, h - 1)
         dxy_du = (xy[pv, u1] - xy[pv, u0]) / (u1 - u0)[:, None]
         dxy_dv = (xy[v1, pu] - xy[v0, pu]) / (v1 - v0)[:, None]
-        color, on = _planar_texture(mesh.planar_texture, origin, pose[:3, :3], xy[pv, pu],
+        color, on = _planar_texture(mesh.planar_texture, origin, rot, xy[pv, pu],
                                     dxy_du, dxy_dv)
         albedo[sel[on]] = color[on]
+    return _Surface(idx, gid, face, bary, flat_dirs, albedo, hits)
+
+
+def render_color(scene: SimScene, calib: KinectCalibration, world_from_depth: np.ndarray,
+                 light: Light | None = None, rng: np.random.Generator | None = None,
+                 jpeg_quality: int = 90, *, noise: ColorNoise | None = None) -> ColorFrame:
+    """Render one device's colour image (720P: 1280x720) and its ground-truth masks.
+
+    The colour camera sits at ``world_from_depth @ inv(calib.color_from_depth)`` and sees through
+    ``calib.color``'s distortion. Albedo comes from each mesh's colours times its procedural
+    texture, or its planar image texture (area-sampled); shading is ambient + Lambertian key light
+    with optional cast shadows; then blur, vignetting, per-device white balance, per-frame
+    exposure, sensor noise (:class:`ColorNoise`) and JPEG at ``jpeg_quality``.
+
+    Args:
+        scene: the frame's :func:`build_scene`.
+        calib: the device (``calib.color`` intrinsics, ``calib.color_from_depth``).
+        world_from_depth: (4, 4) pose of the device's depth camera, metres.
+        light: lighting; None = ``Light()``.
+        rng: randomness for this frame (exposure, sensor noise).
+        jpeg_quality: 0-100 for :attr:`ColorFrame.jpeg`.
+        noise: sensor imperfections; None = ``ColorNoise()`` defaults.
+    """
+    light = Light() if light is None else light
+    noise = ColorNoise() if noise is None else noise
+    rng = np.random.default_rng() if rng is None else rng
+    intr = calib.color
+    h, w = intr.height, intr.width
+    pose = world_from_color(calib, world_from_depth)
+    origin, dirs, xy = _camera_rays(intr, pose)
+    hit = _cast(scene, origin, dirs)
+    t = hit["t"].reshape(-1)
+    surf = _surface(scene, hit, origin, dirs, xy, pose[:3, :3])
+    idx, gid, face, bary, flat_dirs, albedo = (surf.idx, surf.gid, surf.face, surf.bary,
+                                               surf.dirs, surf.albedo)
+    hits = surf.of
 
     geo = hits(hit["normal"])
     # Face the camera: winding is not trusted, and only the front of a surface is ever seen.

@@ -288,10 +288,12 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                 for i, dev in enumerate(devices):
                     if k in dev["dropped"]:
                         continue
-                    depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
+                    depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise,
+                                         ir=cfg.ir and not frames_mode)
                     if not cfg.color:  # mkv only, without masks (simulate_session checks)
                         skip_color(dev["calib"], rng_noise)
-                        writers[i].write(int(dev["stamps"][k]), depth_mm=depth.depth_mm)
+                        writers[i].write(int(dev["stamps"][k]), depth_mm=depth.depth_mm,
+                                         ir=depth.ir)
                         continue
                     color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
                                          cfg.jpeg_quality)
@@ -301,7 +303,7 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                             color.person_mask, color.chair_mask))
                     else:
                         writers[i].write(int(dev["stamps"][k]), color_jpeg=color.jpeg,
-                                         depth_mm=depth.depth_mm)
+                                         depth_mm=depth.depth_mm, ir=depth.ir)
                     if cfg.masks:
                         path = out / "masks" / dev["calib"].serial / f"{k:05d}.png"
                         path.parent.mkdir(parents=True, exist_ok=True)
@@ -323,11 +325,12 @@ def record_session(out: Path, cfg: SessionConfig, seq: SimulatedSequence,
                             **_writer_options(cfg, i, calibration=True)) as w:
             for b, pose in enumerate(boards):
                 scene = build_scene([*statics, chair_mesh, board_mesh(spec, pose)])
-                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise)
+                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng_noise,
+                                     ir=cfg.ir)
                 color = render_color(scene, dev["calib"], dev["pose"], light, rng_noise,
                                      cfg.jpeg_quality)
                 w.write(round((b + offsets[i]) * 1e6), color_jpeg=color.jpeg,
-                        depth_mm=depth.depth_mm)
+                        depth_mm=depth.depth_mm, ir=depth.ir)
 
     # The empty room (the chair in place, nobody in view) before the subject walked in.
     background = _record_background(out / "background", cfg, devices, offsets,
@@ -392,15 +395,15 @@ def _record_background(out: Path, cfg: SessionConfig, devices: list[dict[str, An
                        creation_time=options["creation_time"] - _dt.timedelta(minutes=10))
         with AzureMkvWriter(out / f"{dev['calib'].serial}.mkv", dev["calib"], **options) as w:
             for b in range(cfg.background_frames):
-                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng)
+                depth = render_depth(scene, dev["calib"], dev["pose"], noise, rng, ir=cfg.ir)
                 stamp = round((b / cfg.fps + offsets[i]) * 1e6)
                 if not cfg.color:
                     skip_color(dev["calib"], rng)
-                    w.write(stamp, depth_mm=depth.depth_mm)
+                    w.write(stamp, depth_mm=depth.depth_mm, ir=depth.ir)
                     continue
                 color = render_color(scene, dev["calib"], dev["pose"], light, rng,
                                      cfg.jpeg_quality)
-                w.write(stamp, color_jpeg=color.jpeg, depth_mm=depth.depth_mm)
+                w.write(stamp, color_jpeg=color.jpeg, depth_mm=depth.depth_mm, ir=depth.ir)
         paths.append(f"{out.name}/{dev['calib'].serial}.mkv")
     return paths
 

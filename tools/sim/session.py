@@ -3,8 +3,9 @@
 Output folder (one session)::
 
     session.json            what the rig recorded: devices, files, sync modes
-    kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH b16g;
-                            with --no-color DEPTH only, as ``k4arecorder --color-mode OFF``)
+    kinect/<serial>.mkv     one Azure Kinect recording per camera (COLOR MJPG, DEPTH and IR b16g;
+                            with --no-color DEPTH and IR only, as ``k4arecorder --color-mode
+                            OFF``; with --no-ir the IR track is declared but empty)
     calibration/<serial>.mkv  ChArUco board captures, one frame per board pose (always colour)
     background/<serial>.mkv   the empty room (chair in place, nobody in view), a few frames
                             (--background-frames; none with 0; colourless with --no-color)
@@ -24,7 +25,7 @@ stopped run goes on where it stopped when run again (``index.partial.jsonl`` lis
 finished, ``index.json`` replaces it at the end; ``--no-resume`` starts over).
 Everything is deterministic given ``--seed``; ``--no-color`` skips rendering colour (most of
 the simulation time) and leaves every depth frame, the calibration captures, the IMU and the
-truth as the same seed writes them with colour.
+truth as the same seed writes them with colour; ``--no-ir`` leaves them as they are with IR.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ class SessionConfig:
     jpeg_quality: int = 90
     model: str = "couch-body"
     color: bool = True  # False: depth-only kinect/ and background/ recordings (mkv, no masks)
+    ir: bool = True  # False: MKVs whose IR track (declared, as k4arecorder does) holds no frames
     # Oracles (what a result would be with one error source gone; the random draws stay the
     # same, so the session is otherwise the one the defaults give):
     clothing: bool = True  # False: the cameras see the bare body (no garment, model-size hands)
@@ -359,11 +361,11 @@ def simulate_motion_dataset(out_dir: str | Path, sequences: int, seed: int = 0,
 
 
 def _config_record(cfg: SessionConfig) -> dict[str, Any]:
-    """``cfg`` for truth.json. ``color``, ``clothing`` and ``imu_misalignment`` appear only when
-    not at their defaults, so that sessions keep the exact bytes they had before the options
-    existed (the committed fixture)."""
+    """``cfg`` for truth.json. ``color``, ``ir``, ``clothing`` and ``imu_misalignment`` appear
+    only when not at their defaults, so that sessions keep the exact bytes they had before the
+    options existed (the committed fixture)."""
     record = dataclasses.asdict(cfg)
-    for key in ("color", *ORACLES):
+    for key in ("color", "ir", *ORACLES):
         if record[key] == SessionConfig.__dataclass_fields__[key].default:
             del record[key]
     return record
@@ -472,6 +474,9 @@ def main(argv: list[str] | None = None) -> int:
                          "k4arecorder --color-mode OFF): colour is not rendered, which is most "
                          "of the time; depth is the same as with colour (mkv only; the "
                          "calibration/ captures keep colour)")
+    ap.add_argument("--no-ir", dest="ir", action="store_false",
+                    help="leave the MKVs' IR tracks empty (declared, with no frames): smaller "
+                         "files, a little faster; depth and colour are the same either way")
     ap.add_argument("--no-clothing", dest="clothing", action="store_false",
                     help="an oracle: the cameras see the bare body (no garment; hands and feet "
                          "at the body model's size), every random draw as with clothes")
