@@ -97,7 +97,7 @@ import struct
 import sys
 import zlib
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -111,6 +111,7 @@ from .azure_calibration import COLOR_RESOLUTIONS, DEPTH_MODES, KinectCalibration
 from .binning import BINNED_MODES, bin_depth, bin_ir
 
 __all__ = [
+    "STREAMS",
     "AzureMkvRecording",
     "AzureMkvWriter",
     "KinectCapture",
@@ -122,6 +123,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: The image streams of a recording, as its tracks are named.
+STREAMS: tuple[str, ...] = ("COLOR", "DEPTH", "IR")
 
 # ---------------------------------------------------------------- constants from the SDK
 TIMECODE_SCALE_NS = 1000  # MATROSKA_TIMESCALE_NS
@@ -793,12 +797,19 @@ class AzureMkvRecording:
         color_resolution: e.g. ``720P`` (from the COLOR track size) or ``OFF``.
         depth_delay_ns, wired_sync_mode, subordinate_delay_ns: the sync tags (with SDK defaults).
         duration_us: the Info Duration in µs (block time of the last frame), or None.
+        streams: the images read: ``COLOR``/``DEPTH``/``IR`` (``open_azure_mkv``'s ``streams``).
     """
 
-    def __init__(self, path: Path, *, strict: bool = False, depth_binning: int = 1) -> None:
+    def __init__(self, path: Path, *, strict: bool = False, depth_binning: int = 1,
+                 streams: Collection[str] | None = None) -> None:
         if depth_binning not in (1, 2):
             raise ValueError(f"depth_binning must be 1 (as recorded) or 2 (2x2 blocks), got "
                              f"{depth_binning!r}")
+        unknown = sorted(set(streams or ()) - set(STREAMS))
+        if unknown:
+            raise ValueError(f"streams must be among {', '.join(STREAMS)}, got "
+                             f"{', '.join(map(repr, unknown))}")
+        self.streams = frozenset(STREAMS if streams is None else streams)
         self.path = path
         self.strict = strict
         self.depth_binning = depth_binning
@@ -1368,8 +1379,9 @@ class AzureMkvRecording:
             self._skip(None, kind, self._device_us(file_ns), base + a,
                        "laced block (k4arecorder writes one frame per block)")
             return None
-        return _Block(kind, file_ns, file_ns + sync_delay[kind], bytes(view[a + n + 3:b]),
-                      base + a)
+        # an image not read pairs by its time alone: its bytes are neither copied nor checked
+        data = bytes(view[a + n + 3:b]) if kind in self.streams else b""
+        return _Block(kind, file_ns, file_ns + sync_delay[kind], data, base + a)
 
     def __iter__(self) -> Iterator[KinectCapture]:
         self.skipped = []
@@ -1414,9 +1426,13 @@ class AzureMkvRecording:
     def _make_capture(self, index: int, chosen: dict[str, _Block]) -> KinectCapture | None:
         images: dict[str, Any] = {}
         stamps: dict[str, int] = {}
+        unread = False
         for kind, block in chosen.items():
             ts = self._device_us(block.file_ns)
             stamps[kind] = ts
+            if kind not in self.streams:
+                unread = True
+                continue
             if kind == "COLOR":
                 if len(block.data) < 4 or block.data[:2] != b"\xff\xd8":
                     self._skip(index, kind, ts, block.offset,
@@ -1435,7 +1451,7 @@ class AzureMkvRecording:
                                 .reshape(t.height, t.width).astype(np.uint16))
                 if self.depth_binned:
                     images[kind] = (bin_depth if kind == "DEPTH" else bin_ir)(images[kind])
-        if not images:
+        if not images and not unread:
             return None
         if "DEPTH" in stamps:
             timestamp = stamps["DEPTH"]
@@ -1452,7 +1468,8 @@ class AzureMkvRecording:
 
 
 def open_azure_mkv(path: str | os.PathLike, *, require_calibration: bool = True,
-                   strict: bool = False, depth_binning: int = 1) -> AzureMkvRecording:
+                   strict: bool = False, depth_binning: int = 1,
+                   streams: Collection[str] | None = None) -> AzureMkvRecording:
     """Open a k4arecorder ``.mkv`` for streaming.
 
     Reads the header (tracks, tags, calibration attachment) now; frames are read when the
@@ -1466,13 +1483,19 @@ def open_azure_mkv(path: str | os.PathLike, *, require_calibration: bool = True,
         depth_binning: 2: read a full-resolution recording's depth and IR binned 2x2, with the
             binned mode's calibration (:mod:`couch.capture.binning`); a binned or depth-less
             recording is read as it is. 1: as recorded.
+        streams: the images to read, among ``COLOR``, ``DEPTH`` and ``IR``; None: all. The
+            others' blocks still pair into captures, so the captures, their indices and time
+            stamps are those of reading everything, with None for the images not read (whose
+            bytes are neither copied, decoded nor checked). Depth-only work on a real recording
+            (``("DEPTH",)``) then skips its IR, which k4arecorder always records, and its colour.
 
     Raises:
         KinectFormatError: not Matroska, truncated or corrupt header, no Azure Kinect tracks,
             unsupported track format, missing/invalid calibration (``require_calibration``).
-        ValueError: ``depth_binning`` not 1 or 2.
+        ValueError: ``depth_binning`` not 1 or 2; a stream name not among the three.
     """
-    rec = AzureMkvRecording(Path(path), strict=strict, depth_binning=depth_binning)
+    rec = AzureMkvRecording(Path(path), strict=strict, depth_binning=depth_binning,
+                            streams=streams)
     if require_calibration and not rec.has_calibration:
         raise KinectFormatError(rec._calibration_error or f"{path}: no calibration")
     return rec

@@ -61,7 +61,7 @@ import dataclasses
 import logging
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +137,7 @@ class KinectFrame:
     _report: Callable[[KinectFrame, str], None] | None = dataclasses.field(default=None,
                                                                            repr=False)
     _stream_has_color: bool = dataclasses.field(default=True, repr=False)
+    _color_unread: bool = dataclasses.field(default=False, repr=False)
     _rgb: np.ndarray | None = dataclasses.field(default=None, init=False, repr=False)
     _color_error: str | None = dataclasses.field(default=None, init=False, repr=False)
 
@@ -161,6 +162,9 @@ class KinectFrame:
         if not self._stream_has_color:
             raise KinectFormatError(f"{self.source}: no colour: the recording has no COLOR "
                                     f"track (recorded depth-only, colour mode OFF)")
+        if self._color_unread:
+            raise KinectFormatError(f"{self.source}: colour not read (the stream was opened "
+                                    f"with streams that leave COLOR out)")
         raise KinectFormatError(f"{self.source}: no colour image in this frame (dropped)")
 
     @property
@@ -321,7 +325,8 @@ class KinectStream:
                               depth_mm=cap.depth_mm, ir=cap.ir, color_data=cap.color_jpeg,
                               color_timestamp_us=cap.color_timestamp_us, depth_grid="depth",
                               source=f"{self.path} capture {cap.index}",
-                              _report=self._color_failed, _stream_has_color=self.has_color)
+                              _report=self._color_failed, _stream_has_color=self.has_color,
+                              _color_unread="COLOR" not in rec.streams)
 
     def _iter_behave(self, seq: BehaveSequence) -> Iterator[KinectFrame]:
         assert self.kinect is not None
@@ -347,8 +352,8 @@ def _us(seconds: float) -> int:
 
 def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
                        kinect: int | None = None, strict: bool = False,
-                       require_calibration: bool = True, depth_binning: int = 1
-                       ) -> KinectStream:
+                       require_calibration: bool = True, depth_binning: int = 1,
+                       streams: Collection[str] | None = None) -> KinectStream:
     """Open one Kinect camera's frames for streaming: an Azure ``.mkv`` or a BEHAVE sequence.
 
     Reads the header now (MKV tracks, tags and calibration; BEHAVE ``info.json``, calibrations
@@ -368,6 +373,9 @@ def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
         depth_binning: MKV only: 2 reads a full-resolution recording's depth binned 2x2
             (:func:`~couch.capture.azure_mkv.open_azure_mkv`); a BEHAVE sequence's depth, in
             the colour camera's grid, is read as it is.
+        streams: MKV only: the images to read (``COLOR``, ``DEPTH``, ``IR``; None: all), see
+            :func:`~couch.capture.azure_mkv.open_azure_mkv`: the frames and their times are
+            the same, the images not read are None. A BEHAVE sequence reads both its files.
 
     Raises:
         KinectFormatError: the path does not exist or is neither; the header is unreadable
@@ -393,7 +401,7 @@ def open_kinect_stream(path: str | os.PathLike, *, serial: str | None = None,
         raise ValueError(f"{p}: kinect={kinect} selects a camera of a BEHAVE sequence; an .mkv "
                          f"file holds one camera")
     rec = open_azure_mkv(p, require_calibration=require_calibration, strict=strict,
-                         depth_binning=depth_binning)
+                         depth_binning=depth_binning, streams=streams)
     stream = KinectStream(p, rec, kinect=None, strict=strict)
     if serial is not None and str(serial) != stream.serial:
         raise KinectFormatError(f"{p}: recording of camera {stream.serial}, not of camera "

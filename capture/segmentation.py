@@ -240,7 +240,7 @@ class BackgroundModel:
 
 
 def _depth_frames(path: Path, depth_binning: int = 1) -> Iterator[np.ndarray | None]:
-    rec = open_azure_mkv(path, depth_binning=depth_binning)
+    rec = open_azure_mkv(path, depth_binning=depth_binning, streams=("DEPTH",))
     if "DEPTH" not in rec.tracks:
         raise SegmentationError(f"{path}: the recording has no DEPTH stream")
     for cap in rec:
@@ -847,7 +847,7 @@ def segment_recording(path: str | os.PathLike, world_from_depth: np.ndarray,
     """
     cfg = config or SegmentationConfig()
     path = Path(path)
-    rec = open_azure_mkv(path, depth_binning=cfg.depth_binning)
+    rec = open_azure_mkv(path, depth_binning=cfg.depth_binning, streams=("DEPTH",))
     if "DEPTH" not in rec.tracks:
         raise SegmentationError(f"{path}: the recording has no DEPTH stream (depth mode "
                                 f"{rec.depth_mode}); segmentation needs depth")

@@ -166,7 +166,7 @@ def camera_track(stream: KinectStream | str | os.PathLike, world_from_depth: np.
     cfg = config or TrackConfig()
     seg = cfg.segmentation or SegmentationConfig()
     st = (stream if isinstance(stream, KinectStream)
-          else open_kinect_stream(stream, depth_binning=seg.depth_binning))
+          else open_kinect_stream(stream, depth_binning=seg.depth_binning, streams=("DEPTH",)))
     if st.depth_grid != "depth":
         raise ValueError(f"{st.path}: camera_track needs depth in the depth camera's pixels "
                          f"(an Azure MKV), got a {st.kind} stream ({st.depth_grid} grid)")

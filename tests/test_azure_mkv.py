@@ -26,6 +26,7 @@ from couch.capture.azure_mkv import (
     decode_color,
     open_azure_mkv,
 )
+from couch.capture.frames import open_kinect_stream
 
 T0_US = 1_234_567  # device time of the first frame
 PERIOD_US = 33_333
@@ -250,6 +251,59 @@ def test_dropped_images_pair_correctly(tmp_path, calibration, frames):
     assert have == [(True, True, True), (False, True, True), (True, False, False),
                     (True, True, False)]
     assert [c.timestamp_us for c in caps] == [T0_US + i * PERIOD_US for i in range(4)]
+
+
+def test_reading_some_streams_keeps_every_capture(tmp_path, recording, calibration, frames):
+    """``streams``: the images left out are None and their bytes are not checked, but their
+    blocks still pair into captures, so a depth-only read yields the captures, indices and
+    time stamps of a full read with the same depth; a corrupt IR block is no skip there."""
+    path = tmp_path / "drops.mkv"
+    jpg, depth, ir = frames[0]
+    with AzureMkvWriter(path, calibration) as w:
+        w.write(T0_US, jpg, depth, ir)
+        w.write(T0_US + PERIOD_US, None, depth, ir)  # colour dropped
+        w.write(T0_US + 2 * PERIOD_US, jpg, None, None)  # depth + IR dropped
+        w.write(T0_US + 3 * PERIOD_US, jpg, depth, None)
+    full = list(open_azure_mkv(path))
+    for streams in (("DEPTH",), ("COLOR",), ("IR", "DEPTH"), ()):
+        caps = list(open_azure_mkv(path, streams=streams))
+        assert [(c.index, c.timestamp_us) for c in caps] == \
+            [(c.index, c.timestamp_us) for c in full]
+        for ours, theirs in zip(caps, full, strict=True):
+            for name, attr in (("COLOR", "color_jpeg"), ("DEPTH", "depth_mm"), ("IR", "ir")):
+                want = getattr(theirs, attr) if name in streams else None
+                got = getattr(ours, attr)
+                assert (got is None) == (want is None), (streams, name)
+                if want is not None:
+                    assert np.array_equal(np.asarray(got), np.asarray(want))
+    # through KinectStream: colour not read is said so, not taken for a dropped image
+    frame = next(iter(open_kinect_stream(path, streams=("DEPTH",))))
+    assert frame.ir is None and frame.depth_mm is not None
+    with pytest.raises(KinectFormatError, match="colour not read"):
+        frame.require_color()
+
+    # the second capture's IR block cut short: a skip when IR is read, nothing when it is not
+    buf = bytearray(recording[0].read_bytes())
+    _, _, a, b = _clusters(bytes(buf))[1]
+    ir_block = [k for k in _ebml(bytes(buf), a, b) if k[0] == 0xA3][2]
+    _, start, data, end = ir_block
+    assert buf[data] == 0x83  # track 3 = IR
+    size_len = data - start - 1
+    buf[start + 1:data] = ((1 << (7 * size_len)) | (end - data - 10)).to_bytes(size_len, "big")
+    buf[end - 10:end] = b"\xec\x88" + bytes(8)
+    crc_id, _, x, y = next(_ebml(bytes(buf), a, b))
+    assert crc_id == 0xBF
+    buf[x:y] = zlib.crc32(bytes(buf[y:b])).to_bytes(4, "little")
+    bad = tmp_path / "badir.mkv"
+    bad.write_bytes(bytes(buf))
+    rec = open_azure_mkv(bad)
+    assert list(rec)[1].ir is None and [s.track for s in rec.skipped] == ["IR"]
+    rec = open_azure_mkv(bad, streams=("DEPTH",))
+    caps = list(rec)
+    assert len(caps) == N_FRAMES and rec.skipped == []
+    np.testing.assert_array_equal(caps[1].depth_mm, frames[1][1])
+    with pytest.raises(ValueError, match="'RGB'"):
+        open_azure_mkv(path, streams=("RGB",))
 
 
 def test_passive_ir_has_no_depth_track(tmp_path, calibration, frames):
