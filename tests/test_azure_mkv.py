@@ -107,6 +107,34 @@ def _clusters(buf: bytes):
 
 
 # ------------------------------------------------------------------ round trip
+def _write_drops(path: Path, calibration, frames) -> Path:
+    """Four captures: whole, colour dropped, depth and IR dropped, IR dropped."""
+    jpg, depth, ir = frames[0]
+    with AzureMkvWriter(path, calibration) as w:
+        w.write(T0_US, jpg, depth, ir)
+        w.write(T0_US + PERIOD_US, None, depth, ir)  # colour dropped
+        w.write(T0_US + 2 * PERIOD_US, jpg, None, None)  # depth + IR dropped
+        w.write(T0_US + 3 * PERIOD_US, jpg, depth, None)
+    return path
+
+
+def _shorten_block(data: bytes, cluster: int, block: int, track: int) -> bytes:
+    """The file with the ``block``-th SimpleBlock of cluster ``cluster`` (of track number
+    ``track``) 10 bytes shorter, the 10 bytes a Void: the cluster stays well-formed (its CRC-32
+    recomputed) but the frame has the wrong byte count."""
+    buf = bytearray(data)
+    _, _, a, b = _clusters(bytes(buf))[cluster]
+    _, start, at, end = [k for k in _ebml(bytes(buf), a, b) if k[0] == 0xA3][block]
+    assert buf[at] == 0x80 | track
+    size_len = at - start - 1
+    buf[start + 1:at] = ((1 << (7 * size_len)) | (end - at - 10)).to_bytes(size_len, "big")
+    buf[end - 10:end] = b"\xec\x88" + bytes(8)
+    crc_id, _, x, y = next(_ebml(bytes(buf), a, b))
+    assert crc_id == 0xBF
+    buf[x:y] = zlib.crc32(bytes(buf[y:b])).to_bytes(4, "little")
+    return bytes(buf)
+
+
 def test_round_trip_bit_exact(recording, calibration, frames):
     path, stamps = recording
     rec = open_azure_mkv(path)
@@ -239,13 +267,7 @@ def test_depth_delay_and_explicit_offset(tmp_path, calibration, frames):
 
 
 def test_dropped_images_pair_correctly(tmp_path, calibration, frames):
-    path = tmp_path / "drops.mkv"
-    jpg, depth, ir = frames[0]
-    with AzureMkvWriter(path, calibration) as w:
-        w.write(T0_US, jpg, depth, ir)
-        w.write(T0_US + PERIOD_US, None, depth, ir)  # colour dropped
-        w.write(T0_US + 2 * PERIOD_US, jpg, None, None)  # depth + IR dropped
-        w.write(T0_US + 3 * PERIOD_US, jpg, depth, None)
+    path = _write_drops(tmp_path / "drops.mkv", calibration, frames)
     caps = list(open_azure_mkv(path))
     have = [(c.color_jpeg is not None, c.depth_mm is not None, c.ir is not None) for c in caps]
     assert have == [(True, True, True), (False, True, True), (True, False, False),
@@ -257,13 +279,7 @@ def test_reading_some_streams_keeps_every_capture(tmp_path, recording, calibrati
     """``streams``: the images left out are None and their bytes are not checked, but their
     blocks still pair into captures, so a depth-only read yields the captures, indices and
     time stamps of a full read with the same depth; a corrupt IR block is no skip there."""
-    path = tmp_path / "drops.mkv"
-    jpg, depth, ir = frames[0]
-    with AzureMkvWriter(path, calibration) as w:
-        w.write(T0_US, jpg, depth, ir)
-        w.write(T0_US + PERIOD_US, None, depth, ir)  # colour dropped
-        w.write(T0_US + 2 * PERIOD_US, jpg, None, None)  # depth + IR dropped
-        w.write(T0_US + 3 * PERIOD_US, jpg, depth, None)
+    path = _write_drops(tmp_path / "drops.mkv", calibration, frames)
     full = list(open_azure_mkv(path))
     for streams in (("DEPTH",), ("COLOR",), ("IR", "DEPTH"), ()):
         caps = list(open_azure_mkv(path, streams=streams))
@@ -283,19 +299,8 @@ def test_reading_some_streams_keeps_every_capture(tmp_path, recording, calibrati
         frame.require_color()
 
     # the second capture's IR block cut short: a skip when IR is read, nothing when it is not
-    buf = bytearray(recording[0].read_bytes())
-    _, _, a, b = _clusters(bytes(buf))[1]
-    ir_block = [k for k in _ebml(bytes(buf), a, b) if k[0] == 0xA3][2]
-    _, start, data, end = ir_block
-    assert buf[data] == 0x83  # track 3 = IR
-    size_len = data - start - 1
-    buf[start + 1:data] = ((1 << (7 * size_len)) | (end - data - 10)).to_bytes(size_len, "big")
-    buf[end - 10:end] = b"\xec\x88" + bytes(8)
-    crc_id, _, x, y = next(_ebml(bytes(buf), a, b))
-    assert crc_id == 0xBF
-    buf[x:y] = zlib.crc32(bytes(buf[y:b])).to_bytes(4, "little")
     bad = tmp_path / "badir.mkv"
-    bad.write_bytes(bytes(buf))
+    bad.write_bytes(_shorten_block(recording[0].read_bytes(), 1, 2, track=3))  # 3: IR
     rec = open_azure_mkv(bad)
     assert list(rec)[1].ir is None and [s.track for s in rec.skipped] == ["IR"]
     rec = open_azure_mkv(bad, streams=("DEPTH",))
@@ -471,22 +476,8 @@ def test_invalid_calibration_json(tmp_path, recording):
 
 def test_corrupt_depth_frame_is_skipped_and_counted(tmp_path, recording, frames):
     path, stamps = recording
-    buf = bytearray(path.read_bytes())
-    _, _, a, b = _clusters(bytes(buf))[1]
-    depth_block = [k for k in _ebml(bytes(buf), a, b) if k[0] == 0xA3][1]
-    _, start, data, end = depth_block
-    assert buf[data] == 0x82  # track 2 = DEPTH
-    # Shrink the block by 10 bytes and turn them into a Void: the cluster stays well-formed but
-    # the depth frame has the wrong byte count.
-    size_len = data - start - 1
-    new_size = end - data - 10
-    buf[start + 1:data] = ((1 << (7 * size_len)) | new_size).to_bytes(size_len, "big")
-    buf[end - 10:end] = b"\xec\x88" + bytes(8)
-    crc_id, _, x, y = next(_ebml(bytes(buf), a, b))  # keep the cluster's CRC-32 valid
-    assert crc_id == 0xBF
-    buf[x:y] = zlib.crc32(bytes(buf[y:b])).to_bytes(4, "little")
     p = tmp_path / "baddepth.mkv"
-    p.write_bytes(bytes(buf))
+    p.write_bytes(_shorten_block(path.read_bytes(), 1, 1, track=2))  # 2: DEPTH
     rec = open_azure_mkv(p)
     caps = list(rec)
     assert len(caps) == N_FRAMES
