@@ -233,6 +233,8 @@ def test_contact_sheet_tool(session, tmp_path):
 
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 4 * 200  # one row per camera
+    # colour, depth and IR side by side: 16:9 at 240 px, then two 320x288 images at 240 px
+    assert image.shape[1] == round(1280 * 240 / 720) + 2 * (6 + round(320 * 240 / 288))
     assert contact_sheet_main([str(tmp_path / "nothing")]) == 1
 
 
@@ -308,6 +310,8 @@ def test_depth_only_contact_sheet_says_so(depth_only, tmp_path):
 
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 4 * 200
+    # the placeholder (as wide as the depth image) and depth: no IR panel without IR frames
+    assert image.shape[1] == 2 * round(320 * 240 / 288) + 6
 
 
 def test_oracle_session_is_the_same_session_without_clothes_or_suit_calibration_error(

@@ -1,9 +1,11 @@
-"""``couch-contact-sheet SESSION_DIR``: one frame of every camera, colour beside depth, as a PNG.
+"""``couch-contact-sheet SESSION_DIR``: one frame of every camera, colour beside depth (and IR
+where the recording has it), as a PNG.
 
 Reads the recordings back through the capture stage's own reader
 (:func:`couch.capture.frames.open_kinect_stream`), so what it shows is what the pipeline will see.
-Depth is colour-mapped over 0.5–4 m (black = invalid). A depth-only recording (no COLOR track,
-e.g. ``couch-simulate --no-color``) gets a grey "no colour track" panel in place of colour.
+Depth is colour-mapped over 0.5–4 m (black = invalid); IR is grey from 0 to the image's 99th
+percentile. A depth-only recording (no COLOR track, e.g. ``couch-simulate --no-color``) gets a
+grey "no colour track" panel in place of colour.
 """
 
 from __future__ import annotations
@@ -27,6 +29,14 @@ def colorize_depth(depth_mm: np.ndarray, near: float = 500.0, far: float = 4000.
     return np.where(depth_mm[..., None] > 0, rgb, 0).astype(np.uint8)
 
 
+def scale_ir(ir: np.ndarray) -> np.ndarray:
+    """(H,W) uint16 IR → (H,W,3) uint8 grey, 0 to the image's 99th percentile white (the few
+    brightest pixels, close or shiny, would otherwise leave the rest of it black)."""
+    top = max(float(np.percentile(ir, 99)), 1.0)
+    grey = np.clip(ir.astype(np.float32) * (255.0 / top), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
 def _fit(image: np.ndarray, height: int) -> np.ndarray:
     w = round(image.shape[1] * height / image.shape[0])
     return cv2.resize(image, (w, height), interpolation=cv2.INTER_AREA)
@@ -44,8 +54,9 @@ def _no_color_panel(depth_shape: tuple[int, int], height: int) -> np.ndarray:
 
 
 def contact_sheet(recordings: list[Path], frame: int, row_height: int = 240) -> np.ndarray:
-    """(H,W,3) uint8 RGB: one row per recording, its colour and depth images of ``frame``
-    (a placeholder panel instead of colour for a recording without a COLOR track)."""
+    """(H,W,3) uint8 RGB: one row per recording, its colour, depth and (when the capture has
+    one) IR images of ``frame`` (a placeholder panel instead of colour for a recording without
+    a COLOR track)."""
     rows = []
     for path in recordings:
         stream = open_kinect_stream(path)
@@ -63,8 +74,11 @@ def contact_sheet(recordings: list[Path], frame: int, row_height: int = 240) -> 
         rgb = found.color_rgb()
         color = (_fit(rgb, row_height) if rgb is not None
                  else _no_color_panel(found.depth_mm.shape, row_height))
-        depth = _fit(colorize_depth(found.depth_mm), row_height)
-        row = np.concatenate([color, np.full((row_height, 6, 3), 255, np.uint8), depth], 1)
+        panels = [color, _fit(colorize_depth(found.depth_mm), row_height)]
+        if found.ir is not None:
+            panels.append(_fit(scale_ir(found.ir), row_height))
+        gap = np.full((row_height, 6, 3), 255, np.uint8)
+        row = np.concatenate([p for panel in panels for p in (panel, gap)][:-1], 1)
         label = f"{stream.serial}  t={found.timestamp_us / 1e6:.3f}s"
         cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3)
         cv2.putText(row, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
