@@ -566,8 +566,8 @@ class DepthFrame:
     ir: np.ndarray | None = None
 
 
-#: IR counts of a white surface (albedo 1) facing the camera 1 m away. A real NFOV IR image
-#: reads a few hundred counts on a person 2-3 m away; the simulator's albedos are its colour
+#: IR counts of a white surface (albedo 1) facing the camera 1 m away: the simulator's
+#: surfaces 2-3 m away then read tens to a few hundred counts. The albedos are the colour
 #: albedos (their RGB mean), a stand-in for the surfaces' 850 nm reflectance.
 IR_GAIN = 3000.0
 
@@ -578,7 +578,8 @@ def _active_ir(scene: SimScene, hit: dict[str, np.ndarray], origin: np.ndarray,
     """(H, W) float32 noise-free active-IR intensity: the camera's own illuminator, so
     ``IR_GAIN · albedo · cos(incidence) / range²`` (range along the ray, metres), dark outside
     the NFOV illuminator's octagon (``fov_cut``, see :class:`DepthNoise`) and where nothing was
-    hit. ``cos`` (H, W) |cos| of the incidence angle."""
+    hit, from the pixel centres' exact rays (the depth's lateral jitter is not applied).
+    ``cos`` (H, W) |cos| of the incidence angle."""
     h, w = dirs.shape[:2]
     surf = _surface(scene, hit, origin, dirs, _grid(intr)[0], rot)
     inv_len = _grid(intr)[2].reshape(-1)[surf.idx]  # 1/|ray| of a ray whose camera z is 1
