@@ -581,18 +581,25 @@ def _active_ir(scene: SimScene, hit: dict[str, np.ndarray], origin: np.ndarray,
     hit, from the pixel centres' exact rays (the depth's lateral jitter is not applied).
     ``cos`` (H, W) |cos| of the incidence angle."""
     h, w = dirs.shape[:2]
-    surf = _surface(scene, hit, origin, dirs, _grid(intr)[0], rot)
-    inv_len = _grid(intr)[2].reshape(-1)[surf.idx]  # 1/|ray| of a ray whose camera z is 1
+    grid = _grid(intr)
+    surf = _surface(scene, hit, origin, dirs, grid[0], rot)
+    inv_len = grid[2].reshape(-1)[surf.idx]  # 1/|ray| of a ray whose camera z is 1
     rng_m = hit["t"].reshape(-1)[surf.idx] / inv_len
     out = np.zeros(h * w, np.float32)
     out[surf.idx] = (np.float32(IR_GAIN) * surf.albedo.mean(axis=1) * cos.reshape(-1)[surf.idx]
                      / np.square(rng_m))
     out = out.reshape(h, w)
     if fov_cut > 0:
-        u = np.abs(np.arange(w) - (w - 1) / 2) / (w / 2)
-        v = np.abs(np.arange(h) - (h - 1) / 2) / (h / 2)
-        out[(u[None] + v[:, None]) > fov_cut] = 0.0
+        out[~_illuminated(h, w, fov_cut)] = 0.0
     return out
+
+
+def _illuminated(h: int, w: int, fov_cut: float) -> np.ndarray:
+    """(H, W) bool: inside the NFOV illuminator's octagon,
+    ``|u−W/2|/(W/2) + |v−H/2|/(H/2) <= fov_cut`` (see :class:`DepthNoise`)."""
+    u = np.abs(np.arange(w) - (w - 1) / 2) / (w / 2)
+    v = np.abs(np.arange(h) - (h - 1) / 2) / (h / 2)
+    return (u[None] + v[:, None]) <= fov_cut
 
 
 def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np.ndarray,
@@ -679,9 +686,7 @@ def render_depth(scene: SimScene, calib: KinectCalibration, world_from_depth: np
     if noise.dropout > 0:
         valid &= rng.random((h, w), dtype=np.float32) >= noise.dropout
     if noise.fov_cut > 0:
-        u = np.abs(np.arange(w) - (w - 1) / 2) / (w / 2)
-        v = np.abs(np.arange(h) - (h - 1) / 2) / (h / 2)
-        valid &= (u[None] + v[:, None]) <= noise.fov_cut
+        valid &= _illuminated(h, w, noise.fov_cut)
     depth_mm = np.where(valid, np.clip(np.rint(z_meas * 1000.0), 0, 65535), 0).astype(np.uint16)
     ir_counts = None
     if ir_clean is not None:
